@@ -1,0 +1,1 @@
+"""Sensor motion controllers (pure numpy)."""

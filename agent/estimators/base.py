@@ -1,0 +1,119 @@
+"""The one small interface every distributed estimator implements.
+
+A sensor role hosts any estimator through this interface (DESIGN.md, "tick protocol"):
+
+1. ``start(ctx, y)``          -- the tick begins: the node's measurement ``y`` and the tick's graph facts.
+2. for ``r`` in ``range(rounds)``:
+   ``payload(r)``              -- what this node sends to its neighbours in exchange round ``r``;
+   ``absorb(r, inbox)``        -- the neighbours' round-``r`` payloads that arrived, keyed by sender id
+                                  (iterated in ascending id order; a missing neighbour is a dropped link).
+3. ``finish()``               -- the update; afterwards :attr:`x` is the estimate for the next tick.
+
+:attr:`x` read *before* ``start`` is the node's estimate of the target state at the current tick
+(for the predictor-form filters of the papers, x̂ₖ computed from data up to k-1).
+
+The core never touches a transport: payloads are plain ``dict[str, np.ndarray]``.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+Payload = dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class TickContext:
+    """Graph facts for one node at one tick, as the world's tick message states them.
+
+    Attributes
+    ----------
+    k, t:        tick index and time (s).
+    n:           number of sensors in the network (N of Gu & Hu's consensus, n of Chen).
+    neighbours:  ids of this node's neighbours at tick k, ascending.
+    weights:     edge weights g_ij(k) aligned with ``neighbours`` (1.0 for range links).
+    b:           target visibility weight b_i(k) (0 = the node does not see the target).
+    delta_max:   maximum degree of the tick's graph (every node gets the same value, so the
+                 consensus rate eta = 1/(delta_max + 1) is common and the network sum is preserved).
+    T:           sample time (s).
+    """
+
+    k: int
+    t: float
+    n: int
+    neighbours: tuple[int, ...] = ()
+    weights: tuple[float, ...] = ()
+    b: float = 1.0
+    delta_max: int = 0
+    T: float = 1.0
+    extra: Mapping[str, float] = field(default_factory=dict)
+
+    def weight_of(self, j: int) -> float:
+        return self.weights[self.neighbours.index(j)]
+
+
+class Estimator(ABC):
+    """One node's distributed estimator. Subclasses document their model and cite equations."""
+
+    #: number of exchange rounds per tick (0 = no communication)
+    rounds: int = 1
+
+    @abstractmethod
+    def start(self, ctx: TickContext, y: np.ndarray) -> None:
+        """Begin tick ``ctx.k`` with this node's measurement ``y``."""
+
+    @abstractmethod
+    def payload(self, r: int) -> Payload:
+        """Payload this node publishes in exchange round ``r``."""
+
+    @abstractmethod
+    def absorb(self, r: int, inbox: Mapping[int, Payload]) -> None:
+        """Neighbour payloads of round ``r`` that arrived (sender id -> payload)."""
+
+    @abstractmethod
+    def finish(self) -> None:
+        """Update the estimate; afterwards :attr:`x` is the estimate for tick k+1."""
+
+    @property
+    @abstractmethod
+    def x(self) -> np.ndarray:
+        """Current state estimate."""
+
+    @property
+    def P(self) -> np.ndarray | None:  # noqa: N802 - paper notation
+        """Current error covariance (or Riccati matrix) if the estimator has one."""
+        return None
+
+    def payload_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Expected shape of each payload entry (used to drop malformed neighbour payloads)."""
+        return {}
+
+    def reinitialise(self, neighbour_estimates: Mapping[int, np.ndarray]) -> None:
+        """Re-start from neighbours' estimates (a restarted node rejoining). Default: their mean."""
+        if neighbour_estimates:
+            xs = [np.asarray(neighbour_estimates[j], float) for j in sorted(neighbour_estimates)]
+            self._set_x(np.mean(xs, axis=0))
+
+    def _set_x(self, x: np.ndarray) -> None:  # pragma: no cover - overridden where supported
+        raise NotImplementedError
+
+
+def valid_inbox(inbox: Mapping[int, Payload], shapes: Mapping[str, tuple[int, ...]]) -> dict[int, Payload]:
+    """Keep only payloads that carry every expected key with the expected shape and finite values,
+    in ascending sender order. A malformed neighbour payload is treated as a dropped link."""
+    out: dict[int, Payload] = {}
+    for j in sorted(inbox):
+        p = inbox[j]
+        ok = True
+        for key, shape in shapes.items():
+            v = p.get(key)
+            if v is None or np.shape(v) != tuple(shape) or not np.all(np.isfinite(v)):
+                ok = False
+                break
+        if ok:
+            out[j] = p
+    return out
