@@ -111,7 +111,7 @@ def valid_inbox(inbox: Mapping[int, Payload], shapes: Mapping[str, tuple[int, ..
         ok = True
         for key, shape in shapes.items():
             v = p.get(key)
-            if v is None or np.shape(v) != tuple(shape) or not np.all(np.isfinite(v)):
+            if not isinstance(v, np.ndarray) or v.shape != tuple(shape) or not np.isfinite(v).all():
                 ok = False
                 break
         if ok:

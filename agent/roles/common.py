@@ -1,0 +1,42 @@
+"""What every role shares: the bus handle, the run length, and the deadline hook."""
+
+from __future__ import annotations
+
+from ..bus import Bus
+from ..wire import Message
+
+
+class Role:
+    """Base class of the message-driven roles."""
+
+    name = "role"
+
+    def __init__(self, ticks: int):
+        self.ticks = int(ticks)
+        self.bus: Bus | None = None
+
+    def attach(self, bus: Bus) -> None:
+        self.bus = bus
+        self.subscribe(bus)
+
+    def subscribe(self, bus: Bus) -> None:  # pragma: no cover - every role overrides
+        raise NotImplementedError
+
+    def publish(self, key: str, msg: Message) -> None:
+        assert self.bus is not None, "attach() the role to a bus first"
+        self.bus.publish(key, msg)
+
+    def start(self) -> None:
+        """Called once after every role is attached (the world publishes tick 0 here)."""
+
+    @property
+    def waiting(self) -> bool:
+        """True while the role waits for messages of the current tick."""
+        return False
+
+    @property
+    def finished(self) -> bool:
+        return False
+
+    def on_deadline(self) -> None:
+        """The wait for the current step timed out: go on with what has arrived."""

@@ -1,0 +1,169 @@
+"""The sensor role: measure, exchange, estimate, move (DESIGN.md "tick protocol", step 3).
+
+Per tick k, once it holds both the world's ``tick`` k and the target's ``truth`` k, sensor i
+
+1. synthesises yᵢ = bᵢ C x + v with its own seeded noise and publishes ``meas``;
+2. runs the estimator's R exchange rounds: publish ``xchg`` (k, r), collect the current neighbours'
+   (k, r) payloads until all arrived or the deadline passes (a missing one is a dropped link);
+3. updates, publishes ``estimate`` (x̂ₖ used for scoring, x̂ₖ₊₁), applies its controller (flocking:
+   Gu & Hu (20) with damping) and publishes ``state`` (position and velocity for tick k+1).
+
+Messages that arrive early (a neighbour already in round r+1, the next tick) are buffered;
+messages of a finished round or tick are counted as late and dropped.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+
+from ..bus import Bus
+from ..estimators.base import Estimator, TickContext
+from ..models import LinearSensor, integrate_double_integrator
+from ..wire import Estimate, Meas, Message, State, Tick, Truth, Xchg
+from .common import Role
+
+
+class SensorRole(Role):
+    name = "sensor"
+
+    def __init__(self, i: int, ticks: int, T: float, estimator: Estimator, sensor: LinearSensor,
+                 rng: np.random.Generator, q0: np.ndarray, p0: np.ndarray | None = None,
+                 controller=None, pos_dims: int = 2):
+        super().__init__(ticks)
+        self.i, self.T = int(i), float(T)
+        self.est = estimator
+        self.sensor = sensor
+        self.rng = rng
+        self.q = np.array(q0, float)
+        self.p = np.zeros_like(self.q) if p0 is None else np.array(p0, float)
+        self.controller = controller
+        self.pos_dims = int(pos_dims)
+        self.k = 0                      # tick being (or next to be) processed
+        self.r = -1                     # current exchange round, -1 = not in a tick
+        self._ticks: dict[int, Tick] = {}
+        self._truth: dict[int, Truth] = {}
+        self._xbuf: dict[tuple[int, int], dict[int, dict]] = {}
+        self._prior: np.ndarray | None = None
+        self._nbrs: list[int] = []
+        self.counters: Counter = Counter()
+
+    # ------------------------------------------------------------------ wiring
+    def subscribe(self, bus: Bus) -> None:
+        bus.subscribe("world/tick", self._on_tick)
+        bus.subscribe("target/truth", self._on_truth)
+        bus.subscribe("agent/*/xchg", self._on_xchg)
+
+    @property
+    def finished(self) -> bool:
+        return self.k >= self.ticks
+
+    @property
+    def waiting(self) -> bool:
+        return self.r >= 0
+
+    # ------------------------------------------------------------------ handlers
+    def _on_tick(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Tick)
+        if msg.k >= self.k and msg.n > self.i:
+            self._ticks[msg.k] = msg
+            self._try_begin()
+
+    def _on_truth(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Truth)
+        if msg.k >= self.k:
+            self._truth[msg.k] = msg
+            self._try_begin()
+
+    def _on_xchg(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Xchg)
+        if msg.src == self.i:
+            return
+        if msg.k < self.k or (msg.k == self.k and 0 <= self.r and msg.r < self.r):
+            self.counters["late_payloads"] += 1
+            return
+        current = msg.k == self.k and self.r >= 0
+        if current and msg.src not in self._nbrs:
+            self.counters["non_neighbour_payloads"] += 1
+            return
+        self._xbuf.setdefault((msg.k, msg.r), {})[msg.src] = msg.payload
+        if current and msg.r == self.r:
+            self._check_round()
+
+    # ------------------------------------------------------------------ the tick
+    def _try_begin(self) -> None:
+        while self.r < 0 and not self.finished and self.k in self._ticks and self.k in self._truth:
+            self._begin()
+
+    def _ctx(self) -> TickContext:
+        t = self._ticks[self.k]
+        return TickContext(k=t.k, t=t.t, n=t.n, neighbours=tuple(self._nbrs),
+                           weights=tuple(t.weights[self.i][t.links[self.i].index(j)] for j in self._nbrs),
+                           b=float(t.b[self.i]), delta_max=t.delta_max, T=self.T)
+
+    def _neighbours(self) -> list[int]:
+        """This tick's alive neighbours (from the world's link table)."""
+        t = self._ticks[self.k]
+        return [j for j in t.links[self.i] if t.alive[j]]
+
+    def _begin(self) -> None:
+        tick, truth = self._ticks[self.k], self._truth[self.k]
+        b = float(tick.b[self.i])
+        y = self.sensor.measure(truth.x, b, self.rng)
+        self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy()))
+        self._prior = self.est.x.copy()
+        self._nbrs = self._neighbours()
+        self.est.start(self._ctx(), y)
+        self.r = 0
+        self._open_round()
+
+    def _open_round(self) -> None:
+        if self.r >= self.est.rounds:
+            self._finish()
+            return
+        self.publish(f"agent/{self.i}/xchg", Xchg(src=self.i, k=self.k, r=self.r, payload=self.est.payload(self.r)))
+        self._check_round()
+
+    def _check_round(self) -> None:
+        got = self._xbuf.get((self.k, self.r), {})
+        if all(j in got for j in self._nbrs):
+            self._close_round()
+
+    def _close_round(self) -> None:
+        got = self._xbuf.pop((self.k, self.r), {})
+        nbrs = self._nbrs
+        inbox = {j: got[j] for j in nbrs if j in got}
+        self.counters["dropped_links"] += len(nbrs) - len(inbox)
+        self.est.absorb(self.r, inbox)
+        self.r += 1
+        self._open_round()
+
+    def on_deadline(self) -> None:
+        if self.r >= 0:
+            self.counters["deadline_rounds"] += 1
+            self._close_round()
+
+    def _finish(self) -> None:
+        k = self.k
+        self.est.finish()
+        x_next = self.est.x
+        P = self.est.P
+        self.publish(f"agent/{self.i}/estimate",
+                     Estimate(src=self.i, k=k, x=self._prior, x_next=x_next.copy(),
+                              P=None if P is None else np.array(P, float), name=type(self.est).__name__))
+        if self.controller is not None:
+            d = self.pos_dims
+            tick = self._ticks[k]
+            nbr_pos = np.array([tick.positions[j] for j in self._nbrs]).reshape(-1, self.q.size)
+            u = self.controller.control(self.q, self.p, x_next[:d], x_next[d:2 * d], nbr_pos)
+            self.q, self.p = integrate_double_integrator(self.q, self.p, u, self.T)
+        self.publish(f"agent/{self.i}/state", State(src=self.i, k=k, pos=self.q.copy(), vel=self.p.copy()))
+        self.r = -1
+        self.k = k + 1
+        for d in (self._ticks, self._truth):
+            for kk in [kk for kk in d if kk < self.k]:
+                del d[kk]
+        for kr in [kr for kr in self._xbuf if kr[0] < self.k]:
+            del self._xbuf[kr]
+        self._try_begin()

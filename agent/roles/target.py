@@ -1,0 +1,102 @@
+"""The target role: publish the truth, move (DESIGN.md "tick protocol", steps 2 and 5).
+
+On tick k the target publishes ``truth`` xₖ. A *normal* target then moves, x⁺ = Ax + Bw (Gu & Hu (1));
+an *intelligent* target first waits for the trackers' estimates x̂ₖ of tick k and moves
+x⁺ = Axₖ + kₑ(xₖ − x̂ₖ) (Gu & Hu, Section IV), using the mean of the alive nodes' estimates
+(``estimate_source = "mean"``) or one node's (``"node:<i>"``). Then it publishes ``state`` (its
+position/velocity for tick k+1), which the world needs for range-based visibility.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..bus import Bus
+from ..wire import Estimate, Message, State, Tick, Truth
+from .common import Role
+
+
+class TargetRole(Role):
+    name = "target"
+
+    def __init__(self, ticks: int, model, intelligent: bool, pos_dims: int, estimate_source: str = "mean"):
+        super().__init__(ticks)
+        self.model = model
+        self.intelligent = bool(intelligent)
+        self.pos_dims = int(pos_dims)
+        self.source = estimate_source
+        self.k = 0
+        self._tick: Tick | None = None
+        self._est: dict[int, np.ndarray] = {}
+        self._last_xhat: np.ndarray | None = None
+        self._waiting = False
+
+    def subscribe(self, bus: Bus) -> None:
+        bus.subscribe("world/tick", self._on_tick)
+        if self.intelligent:
+            bus.subscribe("agent/*/estimate", self._on_estimate)
+
+    @property
+    def finished(self) -> bool:
+        return self.k >= self.ticks
+
+    @property
+    def waiting(self) -> bool:
+        return self._waiting
+
+    def _on_tick(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Tick)
+        if msg.k != self.k or self._waiting:
+            return
+        self._tick = msg
+        x = self.model.x
+        self.publish("target/truth", Truth(k=msg.k, t=msg.t, x=np.array(x, float)))
+        if self.intelligent:
+            self._waiting = True
+            self._check()
+        else:
+            self.model.step()
+            self._moved()
+
+    def _expected(self) -> list[int]:
+        t = self._tick
+        if self.source.startswith("node:"):
+            return [int(self.source[5:])]
+        return [i for i in range(t.n) if t.alive[i]]
+
+    def _on_estimate(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Estimate)
+        if msg.k == self.k:
+            self._est[msg.src] = msg.x
+            if self._waiting:
+                self._check()
+        # earlier/later ticks: ignore (a late estimate cannot change a past move)
+
+    def _check(self) -> None:
+        if all(i in self._est for i in self._expected()):
+            self._move_intelligent()
+
+    def on_deadline(self) -> None:
+        if self._waiting:
+            self._move_intelligent()
+
+    def _move_intelligent(self) -> None:
+        got = [self._est[i] for i in self._expected() if i in self._est]
+        if got:
+            xhat = np.mean(got, axis=0)
+        elif self._last_xhat is not None:
+            xhat = self._last_xhat
+        else:
+            xhat = np.array(self.model.x, float)  # nobody tracks: no adversarial push
+        self._last_xhat = xhat
+        self.model.step(xhat)
+        self._waiting = False
+        self._est.clear()
+        self._moved()
+
+    def _moved(self) -> None:
+        x = np.asarray(self.model.x, float)
+        d = self.pos_dims
+        vel = x[d:2 * d] if x.size >= 2 * d else np.zeros(d)
+        self.publish("target/state", State(k=self.k, pos=x[:d].copy(), vel=vel.copy()))
+        self.k += 1

@@ -1,0 +1,490 @@
+"""Typed scenario schema and loader: TOML → frozen dataclasses, with errors that name the file, the
+key and what was expected (and how to fix it).
+
+A scenario has these tables (every key optional unless marked *required*; see ``scenarios/*.toml``):
+
+``[run]``        name, ticks, T (s), seed, mode ("lockstep" | "realtime"), deadline_s
+``[target]``     kind ("normal" | "intelligent"), model ("double_integrator" | "matrices"), dim, A, B,
+                 Q (covariance of w in x⁺ = Ax + Bw), x0 (*required*), ke, estimate_source
+``[sensors]``    n (*required*), C, R, positions | (grid_rows, spacing, jitter, origin), motion
+                 ("flocking" | "static"), sensing_range, beta
+``[estimator]``  name ("minimax" | "kalman" | "hinf_switching"), rounds, eta, S, Q, P0, x0, x0_offsets,
+                 gamma, R_design, Q_design, comm_noise, lambda0
+``[topology]``   kind ("range" | "schedule"), range, dwell_ticks, [[topology.graphs]] (edges, b, weights)
+``[control]``    flocking gains kc, kr, kd, h1, h2, l1, l2, u_max
+
+This module is pure parsing/validation; it reads a file only in :func:`load_scenario`.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+import types
+import typing
+from dataclasses import MISSING, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from .models import double_integrator
+
+Matrix = list[list[float]]
+Vector = list[float]
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot run. The message names the file, the key, and the fix."""
+
+    def __init__(self, source: str, key: str, problem: str, fix: str = ""):
+        self.source, self.key, self.problem, self.fix = source, key, problem, fix
+        msg = f"{source}: [{key}] {problem}"
+        if fix:
+            msg += f" — fix: {fix}"
+        super().__init__(msg)
+
+
+# ----------------------------------------------------------------------------- sections
+
+@dataclass(frozen=True)
+class RunCfg:
+    name: str = "run"
+    ticks: int = 100
+    T: float = 0.1
+    seed: int = 0
+    mode: Literal["lockstep", "realtime"] = "lockstep"
+    deadline_s: float = 5.0  #: per-wait deadline (lockstep: only guards against dead processes)
+    burn_in: int = 0         #: ticks excluded from the RMSE summaries
+
+
+@dataclass(frozen=True)
+class TargetCfg:
+    x0: Vector = field(default_factory=list)
+    kind: Literal["normal", "intelligent"] = "normal"
+    model: Literal["double_integrator", "matrices"] = "double_integrator"
+    dim: int = 2
+    A: Matrix | None = None
+    B: Matrix | None = None
+    Q: Matrix | None = None
+    ke: float = 0.0
+    estimate_source: str = "mean"  #: "mean" of all node estimates, or "node:<i>"
+
+
+@dataclass(frozen=True)
+class SensorsCfg:
+    n: int = 0
+    C: Matrix | None = None
+    R: Matrix | None = None
+    positions: Matrix | None = None
+    grid_rows: int = 2
+    spacing: float = 8.0
+    jitter: float = 0.0
+    origin: Vector = field(default_factory=lambda: [0.0, 0.0])
+    motion: Literal["flocking", "static"] = "static"
+    sensing_range: float = math.inf
+    beta: float = 1.0
+
+
+@dataclass(frozen=True)
+class EstimatorCfg:
+    name: Literal["minimax", "kalman", "hinf_switching"] = "minimax"
+    rounds: int = 1
+    eta: str = "1/(dmax+1)"
+    S: Matrix | None = None
+    Q: Matrix | None = None
+    P0: Matrix | None = None
+    x0: Vector | None = None
+    x0_offsets: Matrix | None = None
+    gamma: float = 0.1
+    R_design: Matrix | None = None
+    Q_design: Matrix | None = None
+    comm_noise: Matrix | None = None
+    lambda0: float | None = None
+
+
+@dataclass(frozen=True)
+class GraphCfg:
+    edges: list[list[int]] = field(default_factory=list)
+    b: Vector = field(default_factory=list)
+    weights: Vector | None = None
+
+
+@dataclass(frozen=True)
+class TopologyCfg:
+    kind: Literal["range", "schedule"] = "range"
+    range: float = math.inf
+    dwell_ticks: int = 1
+    graphs: list[GraphCfg] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class ControlCfg:
+    kc: float = 1.0
+    kr: float = 30.0
+    kd: float = 2.0
+    h1: float = 100.0
+    h2: float = 220.0
+    l1: float = 20.0
+    l2: float = 60.0
+    u_max: float | None = None
+
+
+@dataclass(frozen=True)
+class Scenario:
+    run: RunCfg
+    target: TargetCfg
+    sensors: SensorsCfg
+    estimator: EstimatorCfg = field(default_factory=EstimatorCfg)
+    topology: TopologyCfg = field(default_factory=TopologyCfg)
+    control: ControlCfg = field(default_factory=ControlCfg)
+    source: str = "<scenario>"
+
+    # ------------------------------------------------------------------ derived model matrices
+    @property
+    def A(self) -> np.ndarray:  # noqa: N802
+        return self.target_matrices()[0]
+
+    @property
+    def B(self) -> np.ndarray:  # noqa: N802
+        return self.target_matrices()[1]
+
+    def target_matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        t = self.target
+        if t.model == "double_integrator":
+            return double_integrator(self.run.T, t.dim)
+        return np.array(t.A, float), np.array(t.B, float)
+
+    @property
+    def m(self) -> int:
+        return len(self.target.x0)
+
+    @property
+    def pos_dims(self) -> int:
+        """Number of leading state components that are the target's position."""
+        return self.target.dim if self.target.model == "double_integrator" else int(np.array(self.C).shape[0])
+
+    @property
+    def C(self) -> np.ndarray:  # noqa: N802
+        return np.array(self.sensors.C, float)
+
+    @property
+    def R(self) -> np.ndarray:  # noqa: N802
+        return np.array(self.sensors.R, float)
+
+    @property
+    def Qw(self) -> np.ndarray:  # noqa: N802
+        """Covariance of the target's process noise w (zero for a noise-free target)."""
+        B = self.B
+        return np.zeros((B.shape[1], B.shape[1])) if self.target.Q is None else np.array(self.target.Q, float)
+
+    def filter_Q(self) -> np.ndarray:  # noqa: N802
+        """Filter process noise in state space: estimator.Q if given, else B·target.Q·Bᵀ."""
+        if self.estimator.Q is not None:
+            return np.array(self.estimator.Q, float)
+        return self.B @ self.Qw @ self.B.T
+
+    def initial_positions(self) -> np.ndarray:
+        """Sensor start positions (explicit, or a jittered grid drawn from the scenario seed)."""
+        s = self.sensors
+        if s.positions is not None:
+            return np.array(s.positions, float)
+        from .seeding import rng_for
+
+        rng = rng_for(self.run.seed, "layout")
+        cols = math.ceil(s.n / s.grid_rows)
+        pts = [(c * s.spacing, r * s.spacing) for r in range(s.grid_rows) for c in range(cols)][: s.n]
+        P = np.array(pts, float) + np.array(s.origin, float)
+        if s.jitter > 0:
+            P = P + rng.uniform(-s.jitter, s.jitter, size=P.shape)
+        return P
+
+    def initial_estimates(self) -> np.ndarray:
+        """Each node's x̂₀ (n × m): estimator.x0 (default 0) plus the node's x0_offsets row."""
+        e = self.estimator
+        x0 = np.zeros(self.m) if e.x0 is None else np.array(e.x0, float)
+        X = np.tile(x0, (self.sensors.n, 1))
+        if e.x0_offsets is not None:
+            X = X + np.array(e.x0_offsets, float)
+        return X
+
+    def with_overrides(self, **kw: Any) -> "Scenario":
+        """Copy with dotted overrides, e.g. ``{"run.ticks": 10, "estimator.name": "kalman"}``."""
+        sc = self
+        for dotted, value in kw.items():
+            sect, _, key = dotted.partition(".")
+            cur = getattr(sc, sect)
+            sc = replace(sc, **{sect: replace(cur, **{key: value})})
+        return validate(sc)
+
+
+_SECTIONS = {"run": RunCfg, "target": TargetCfg, "sensors": SensorsCfg, "estimator": EstimatorCfg,
+             "topology": TopologyCfg, "control": ControlCfg}
+_REQUIRED = {"run", "target", "sensors"}
+_REQUIRED_KEYS = {("target", "x0"), ("sensors", "n")}
+
+
+# ----------------------------------------------------------------------------- generic checking
+
+def _describe(tp: Any) -> str:
+    if tp is float:
+        return "a number"
+    if tp is int:
+        return "an integer"
+    if tp is str:
+        return "a string"
+    if tp is bool:
+        return "true or false"
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if tp == Matrix:
+        return "a matrix (list of equal-length lists of numbers)"
+    if tp == Vector:
+        return "a list of numbers"
+    if tp == list[list[int]]:
+        return "a list of [i, j] integer pairs"
+    return str(tp)
+
+
+def _coerce(value: Any, tp: Any, src: str, key: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (types.UnionType, typing.Union):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)][0]
+        return _coerce(value, inner, src, key)
+    bad = ScenarioError(src, key, f"expected {_describe(tp)}, got {value!r}", f"write {key} as {_describe(tp)}")
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad
+        return value
+    if tp is str or tp is bool:
+        if not isinstance(value, tp):
+            raise bad
+        return value
+    if origin is Literal:
+        if value not in args:
+            raise bad
+        return value
+    if tp == Vector:
+        if not isinstance(value, list):
+            raise bad
+        return [_coerce(v, float, src, f"{key}[{i}]") for i, v in enumerate(value)]
+    if tp == Matrix:
+        if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
+            raise bad
+        rows = [_coerce(r, Vector, src, f"{key}[{i}]") for i, r in enumerate(value)]
+        if len({len(r) for r in rows}) != 1 or not rows[0]:
+            raise ScenarioError(src, key, "matrix rows have different lengths", "give every row the same length")
+        for i, r in enumerate(rows):
+            if not all(math.isfinite(x) for x in r):
+                raise ScenarioError(src, f"{key}[{i}]", "matrix entries must be finite")
+        return rows
+    if tp == list[list[int]]:
+        if not isinstance(value, list):
+            raise bad
+        out = []
+        for i, e in enumerate(value):
+            if (not isinstance(e, list) or len(e) != 2
+                    or not all(isinstance(v, int) and not isinstance(v, bool) for v in e)):
+                raise ScenarioError(src, f"{key}[{i}]", f"expected an [i, j] integer pair, got {e!r}")
+            out.append(list(e))
+        return out
+    raise AssertionError(f"unsupported schema type {tp}")  # pragma: no cover
+
+
+def _build(cls: type, table: Any, src: str, section: str) -> Any:
+    if not isinstance(table, dict):
+        raise ScenarioError(src, section, f"expected a table, got {table!r}", f"write [{section}] as a TOML table")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in fields(cls)}
+    for k in table:
+        if k not in names:
+            raise ScenarioError(src, f"{section}.{k}", "unknown key",
+                                f"remove it or use one of: {', '.join(sorted(names))}")
+    kw = {}
+    for f in fields(cls):
+        key = f"{section}.{f.name}"
+        if f.name not in table:
+            if (section, f.name) in _REQUIRED_KEYS:
+                raise ScenarioError(src, key, "is required", f"add {f.name} = … to [{section}]")
+            continue
+        if cls is TopologyCfg and f.name == "graphs":
+            gl = table["graphs"]
+            if not isinstance(gl, list):
+                raise ScenarioError(src, key, "expected an array of tables", "write [[topology.graphs]] blocks")
+            kw["graphs"] = [_build(GraphCfg, g, src, f"topology.graphs[{i}]") for i, g in enumerate(gl)]
+            continue
+        kw[f.name] = _coerce(table[f.name], hints[f.name], src, key)
+    return cls(**kw)
+
+
+# ----------------------------------------------------------------------------- cross-field validation
+
+def _shape(src: str, key: str, M: Any, shape: tuple[int, int], what: str) -> None:
+    got = np.shape(np.array(M, float))
+    if got != shape:
+        raise ScenarioError(src, key, f"expected a {shape[0]}×{shape[1]} matrix ({what}), got shape "
+                            f"{'×'.join(map(str, got))}", f"give {key} {shape[0]} rows of {shape[1]} numbers")
+
+
+def _pd(src: str, key: str, M: Any, semi: bool = False) -> None:
+    M = np.array(M, float)
+    if not np.allclose(M, M.T, atol=1e-12):
+        raise ScenarioError(src, key, "covariance must be symmetric", "make the matrix symmetric")
+    lo = float(np.linalg.eigvalsh(M).min())
+    if (lo < 0) if semi else (lo <= 0):
+        kind = "positive semidefinite" if semi else "positive definite"
+        raise ScenarioError(src, key, f"covariance must be {kind} (smallest eigenvalue {lo:.3g})",
+                            f"use a {kind} matrix, e.g. a diagonal with {'non-negative' if semi else 'positive'} entries")
+
+
+def validate(sc: Scenario) -> Scenario:
+    """Cross-field checks: dimensions, covariances, schedules. Returns the scenario unchanged."""
+    src = sc.source
+    r, t, s, e, tp = sc.run, sc.target, sc.sensors, sc.estimator, sc.topology
+    if r.ticks < 1:
+        raise ScenarioError(src, "run.ticks", f"must be ≥ 1, got {r.ticks}")
+    if not r.T > 0:
+        raise ScenarioError(src, "run.T", f"sample time must be > 0, got {r.T}")
+    if s.n < 1:
+        raise ScenarioError(src, "sensors.n", f"need at least one sensor, got {s.n}")
+    m = len(t.x0)
+    if t.model == "double_integrator":
+        if m != 2 * t.dim:
+            raise ScenarioError(src, "target.x0", f"a {t.dim}-D double integrator has {2 * t.dim} states "
+                                f"[position, velocity], got {m}", f"give x0 {2 * t.dim} numbers")
+        if t.A is not None or t.B is not None:
+            raise ScenarioError(src, "target.A", "A/B are derived from T for model = \"double_integrator\"",
+                                "remove A and B, or set model = \"matrices\"")
+    else:
+        if t.A is None or t.B is None:
+            raise ScenarioError(src, "target.A" if t.A is None else "target.B", "is required when model = \"matrices\"")
+        _shape(src, "target.A", t.A, (m, m), "m × m with m = len(x0)")
+        if np.shape(t.B)[0] != m:
+            raise ScenarioError(src, "target.B", f"expected {m} rows (m = len(x0)), got {np.shape(t.B)[0]}")
+    p = sc.B.shape[1]
+    if t.Q is not None:
+        _shape(src, "target.Q", t.Q, (p, p), f"covariance of w, {p} × {p}")
+        _pd(src, "target.Q", t.Q, semi=True)
+    if t.kind == "intelligent":
+        if t.ke == 0:
+            raise ScenarioError(src, "target.ke", "an intelligent target needs a non-zero gain ke")
+        es = t.estimate_source
+        if es != "mean" and not (es.startswith("node:") and es[5:].isdigit() and int(es[5:]) < s.n):
+            raise ScenarioError(src, "target.estimate_source", f"expected \"mean\" or \"node:<i>\" with i < {s.n}, got {es!r}")
+    if s.C is None or s.R is None:
+        raise ScenarioError(src, "sensors.C" if s.C is None else "sensors.R", "is required",
+                            "give the measurement matrix C (q × m) and noise covariance R (q × q)")
+    q = np.shape(s.C)[0]
+    _shape(src, "sensors.C", s.C, (q, m), f"q × m with m = {m}")
+    _shape(src, "sensors.R", s.R, (q, q), f"q × q with q = {q}")
+    _pd(src, "sensors.R", s.R)
+    if s.positions is not None:
+        _shape(src, "sensors.positions", s.positions, (s.n, np.shape(s.positions)[1]), "n rows")
+        if np.shape(s.positions)[1] not in (1, 2, 3):
+            raise ScenarioError(src, "sensors.positions", "positions must be 1-, 2- or 3-D")
+    if s.motion == "flocking":
+        if t.model != "double_integrator":
+            raise ScenarioError(src, "sensors.motion", "flocking follows a double-integrator target's position "
+                                "and velocity", "use motion = \"static\" or a double_integrator target")
+        if s.positions is not None and np.shape(s.positions)[1] != t.dim:
+            raise ScenarioError(src, "sensors.positions", f"flocking sensors live in the target's {t.dim}-D space")
+    if e.rounds < 0:
+        raise ScenarioError(src, "estimator.rounds", f"must be ≥ 0, got {e.rounds}")
+    if e.eta not in ("1/(dmax+1)", "1/dmax"):
+        try:
+            float(e.eta)
+        except ValueError:
+            raise ScenarioError(src, "estimator.eta", f"expected \"1/(dmax+1)\", \"1/dmax\" or a number, got {e.eta!r}") from None
+    if e.x0 is not None and len(e.x0) != m:
+        raise ScenarioError(src, "estimator.x0", f"expected {m} numbers, got {len(e.x0)}")
+    if e.x0_offsets is not None:
+        _shape(src, "estimator.x0_offsets", e.x0_offsets, (s.n, m), "one row per sensor")
+    if e.Q is not None:
+        _shape(src, "estimator.Q", e.Q, (m, m), "filter process noise, m × m")
+        _pd(src, "estimator.Q", e.Q, semi=True)
+    if e.P0 is not None:
+        _shape(src, "estimator.P0", e.P0, (m, m), "initial covariance, m × m")
+        _pd(src, "estimator.P0", e.P0)
+    if e.name == "minimax":
+        if e.S is None:
+            raise ScenarioError(src, "estimator.S", "the minimax filter needs S (q × q)",
+                                "add S, or use name = \"kalman\" (the S → ∞ case)")
+        _shape(src, "estimator.S", e.S, (q, q), f"q × q with q = {q}")
+        _pd(src, "estimator.S", e.S)
+    if e.name == "hinf_switching":
+        if e.R_design is not None:
+            _shape(src, "estimator.R_design", e.R_design, (q, q), "design weight R of ARE (9)")
+            _pd(src, "estimator.R_design", e.R_design)
+        if e.Q_design is not None:
+            _shape(src, "estimator.Q_design", e.Q_design, (m, m), "design weight Q of ARE (9)")
+            _pd(src, "estimator.Q_design", e.Q_design)
+        if e.comm_noise is not None:
+            _shape(src, "estimator.comm_noise", e.comm_noise, (q, q), "covariance of the neighbour-term noise")
+            _pd(src, "estimator.comm_noise", e.comm_noise, semi=True)
+        if not e.gamma >= 0:
+            raise ScenarioError(src, "estimator.gamma", "γ must be ≥ 0")
+        if tp.kind == "range" and e.lambda0 is None:
+            raise ScenarioError(src, "estimator.lambda0", "a range topology has no finite list of graphs to take "
+                                "λ₀ from", "give lambda0 (a lower bound on λ_min(L + B)) or use a schedule")
+    if tp.kind == "range":
+        if not tp.range > 0:
+            raise ScenarioError(src, "topology.range", f"must be > 0, got {tp.range}")
+    else:
+        if not tp.graphs:
+            raise ScenarioError(src, "topology.graphs", "a schedule needs at least one [[topology.graphs]]")
+        if tp.dwell_ticks < 1:
+            raise ScenarioError(src, "topology.dwell_ticks", f"must be ≥ 1, got {tp.dwell_ticks}")
+        for gi, g in enumerate(tp.graphs):
+            key = f"topology.graphs[{gi}]"
+            if len(g.b) != s.n:
+                raise ScenarioError(src, f"{key}.b", f"expected {s.n} visibility weights (one per sensor), got {len(g.b)}")
+            if any(v < 0 for v in g.b):
+                raise ScenarioError(src, f"{key}.b", "visibility weights must be ≥ 0")
+            for ei, (a, bb) in enumerate(g.edges):
+                if not (0 <= a < s.n and 0 <= bb < s.n) or a == bb:
+                    raise ScenarioError(src, f"{key}.edges[{ei}]", f"edge [{a}, {bb}] must join two different "
+                                        f"sensors in 0..{s.n - 1}")
+            if g.weights is not None and len(g.weights) != len(g.edges):
+                raise ScenarioError(src, f"{key}.weights", "expected one weight per edge")
+        if not any(v > 0 for g in tp.graphs for v in g.b):
+            raise ScenarioError(src, "topology.graphs", "no graph of the schedule lets any sensor see the target "
+                                "(every b is 0), so no estimator can track it",
+                                "give at least one sensor b > 0 in some graph")
+    return sc
+
+
+def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
+    """Build and validate a scenario from an already-parsed TOML mapping."""
+    for k in data:
+        if k not in _SECTIONS:
+            raise ScenarioError(source, k, "unknown table", f"use one of: {', '.join(_SECTIONS)}")
+    for k in _REQUIRED:
+        if k not in data:
+            raise ScenarioError(source, k, "table is required", f"add a [{k}] table")
+    kw = {name: _build(cls, data[name], source, name) for name, cls in _SECTIONS.items() if name in data}
+    return validate(Scenario(source=source, **kw))
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a TOML scenario file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ScenarioError(str(path), "-", f"cannot read the file ({exc.strerror})", "check the path") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(str(path), "-", f"is not valid TOML ({exc})", "fix the TOML syntax") from None
+    return parse_scenario(data, str(path))
+
+
+_ = MISSING  # keep import for dataclass introspection users

@@ -1,0 +1,398 @@
+"""The message schema: encode, decode, validate. The only module that knows msgpack.
+
+Every message travels under a key relative to the run prefix (``ft/<run>/``, DESIGN.md "Key space"):
+
+=========================  ============  =======================================================
+key                        type          published by
+=========================  ============  =======================================================
+``world/tick``             Tick          the world (clock, per-tick link table, visibility)
+``target/truth``           Truth         the target (its true state at tick k)
+``target/state``           State         the target (its position after tick k, i.e. for k+1)
+``agent/<i>/meas``         Meas          sensor i (its measurement at tick k)
+``agent/<i>/xchg``         Xchg          sensor i (consensus payload of exchange round r)
+``agent/<i>/estimate``     Estimate      sensor i (x̂ₖ and x̂ₖ₊₁)
+``agent/<i>/state``        State         sensor i (position/velocity after tick k)
+``fusion/estimate``        Estimate      the fusion solver
+``control/<verb>``         Control       dashboard / CLI (faults, pause, ...)
+=========================  ============  =======================================================
+
+:func:`decode` validates everything it returns: field types, array shapes and sizes, finite values,
+and that the sender named in the message owns the key it came on. A bad message raises
+:class:`WireError` whose ``reason`` is a short stable label; buses drop such messages and count them
+per reason — they never reach a role.
+
+Arrays travel as ``{"s": shape, "d": little-endian float64 bytes}`` so that a round trip is
+bit-exact (lockstep over Zenoh must give the same numbers as in-process).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, ClassVar
+
+import msgpack
+import numpy as np
+
+MAX_MESSAGE_BYTES = 1 << 20      #: larger payloads are rejected before unpacking
+MAX_ARRAY_ELEMENTS = 1 << 16     #: per array
+MAX_LIST_LEN = 4096              #: per list field (neighbour lists, per-node vectors)
+MAX_PAYLOAD_ENTRIES = 32         #: entries of an exchange payload
+
+
+class WireError(ValueError):
+    """A message that must be dropped. ``reason`` is a stable label used as a counter name."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+
+
+# --------------------------------------------------------------------------- arrays
+
+def _enc_array(a: np.ndarray) -> dict:
+    a = np.ascontiguousarray(np.asarray(a, dtype="<f8"))
+    return {"s": list(a.shape), "d": a.tobytes()}
+
+
+def _dec_array(v: Any, ndim: tuple[int, ...] = (1, 2)) -> np.ndarray:
+    if not isinstance(v, dict) or set(v) != {"s", "d"}:
+        raise WireError("bad_array", "array must be {s: shape, d: bytes}")
+    shape, data = v["s"], v["d"]
+    if (not isinstance(shape, list) or len(shape) not in ndim
+            or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_ARRAY_ELEMENTS
+                       for s in shape)):
+        raise WireError("bad_shape", f"shape {shape!r}")
+    if not isinstance(data, bytes):
+        raise WireError("bad_array", "data must be bytes")
+    size = math.prod(shape)
+    if size > MAX_ARRAY_ELEMENTS:
+        raise WireError("too_large", f"{size} elements")
+    if len(data) != 8 * size:
+        raise WireError("bad_shape", f"{len(data)} bytes for shape {shape}")
+    a = np.frombuffer(data, dtype="<f8").reshape(shape).astype(float)
+    if not np.all(np.isfinite(a)):
+        raise WireError("non_finite", "array holds NaN or inf")
+    return a
+
+
+# --------------------------------------------------------------------------- field checks
+
+def _int(v: Any, name: str, lo: int = 0, hi: int = 2**53) -> int:
+    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        raise WireError("bad_field", f"{name} must be an int in [{lo}, {hi}], got {v!r}")
+    return v
+
+
+def _float(v: Any, name: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise WireError("bad_field", f"{name} must be a number, got {type(v).__name__}")
+    if not math.isfinite(v):
+        raise WireError("non_finite", f"{name} is not finite")
+    return float(v)
+
+
+def _str(v: Any, name: str, maxlen: int = 256) -> str:
+    if not isinstance(v, str) or len(v) > maxlen:
+        raise WireError("bad_field", f"{name} must be a string of at most {maxlen} chars")
+    return v
+
+
+def _list(v: Any, name: str, maxlen: int = MAX_LIST_LEN) -> list:
+    if not isinstance(v, list) or len(v) > maxlen:
+        raise WireError("bad_field", f"{name} must be a list of at most {maxlen} items")
+    return v
+
+
+# --------------------------------------------------------------------------- messages
+
+@dataclass
+class Message:
+    """Base class. ``src`` is the sender's id within its role (0 for world/target/fusion)."""
+
+    TYPE: ClassVar[str] = ""
+    src: int = 0
+    k: int = 0
+
+    def to_wire(self) -> dict:
+        out: dict[str, Any] = {"type": self.TYPE}
+        for f in fields(self):
+            out[f.name] = _to_wire_value(getattr(self, f.name))
+        return out
+
+    @classmethod
+    def from_wire(cls, d: dict) -> "Message":
+        src = _int(d.get("src"), "src", 0, MAX_LIST_LEN)
+        k = _int(d.get("k"), "k", 0)
+        return cls(src=src, k=k, **cls._fields_from_wire(d))
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        return {}
+
+    def to_json(self) -> dict:
+        """A JSON-friendly dict (arrays as nested lists) for recordings and dashboards."""
+        return _jsonable(asdict(self)) | {"type": self.TYPE}
+
+
+def _to_wire_value(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return _enc_array(v)
+    if isinstance(v, dict):
+        return {str(k): _to_wire_value(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_to_wire_value(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+@dataclass
+class Tick(Message):
+    """World → all: tick k begins. Links are this tick's neighbour lists (after range and faults)."""
+
+    TYPE: ClassVar[str] = "tick"
+    t: float = 0.0
+    n: int = 0
+    links: list[list[int]] = field(default_factory=list)
+    weights: list[list[float]] = field(default_factory=list)
+    b: list[float] = field(default_factory=list)
+    delta_max: int = 0
+    alive: list[bool] = field(default_factory=list)
+    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        n = _int(d.get("n"), "n", 0, MAX_LIST_LEN)
+        links = _list(d.get("links"), "links")
+        weights = _list(d.get("weights"), "weights")
+        b = _list(d.get("b"), "b")
+        alive = _list(d.get("alive"), "alive")
+        if not (len(links) == len(weights) == len(b) == len(alive) == n):
+            raise WireError("bad_shape", "links/weights/b/alive must have n entries")
+        lk = []
+        for i, (li, wi) in enumerate(zip(links, weights)):
+            li = [_int(j, "links[i][j]", 0, n - 1) for j in _list(li, "links[i]")]
+            wi = [_float(w, "weights[i][j]") for w in _list(wi, "weights[i]")]
+            if len(li) != len(wi) or i in li or li != sorted(set(li)):
+                raise WireError("bad_field", f"links[{i}] must be sorted, unique, without self, aligned with weights")
+            lk.append((li, wi))
+        pos = _dec_array(d.get("positions"), ndim=(2,))
+        if pos.shape[0] != n:
+            raise WireError("bad_shape", "positions must have n rows")
+        alive_v = []
+        for a in alive:
+            if not isinstance(a, bool):
+                raise WireError("bad_field", "alive must be booleans")
+            alive_v.append(a)
+        return dict(t=_float(d.get("t"), "t"), n=n, links=[x[0] for x in lk], weights=[x[1] for x in lk],
+                    b=[_float(x, "b[i]") for x in b], delta_max=_int(d.get("delta_max"), "delta_max", 0, n),
+                    alive=alive_v, positions=pos)
+
+
+@dataclass
+class Truth(Message):
+    """Target → sensors, scorer: the true target state xₖ."""
+
+    TYPE: ClassVar[str] = "truth"
+    t: float = 0.0
+    x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        return dict(t=_float(d.get("t"), "t"), x=_dec_array(d.get("x"), ndim=(1,)))
+
+
+@dataclass
+class Meas(Message):
+    """Sensor i's measurement at tick k: yᵢ = bᵢ C x + v, stamped with time t."""
+
+    TYPE: ClassVar[str] = "meas"
+    t: float = 0.0
+    y: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    b: float = 1.0
+    pos: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        return dict(t=_float(d.get("t"), "t"), y=_dec_array(d.get("y"), ndim=(1,)), b=_float(d.get("b"), "b"),
+                    pos=_dec_array(d.get("pos"), ndim=(1,)))
+
+
+@dataclass
+class Xchg(Message):
+    """Sensor i's exchange payload for round r of tick k (estimator-defined named arrays)."""
+
+    TYPE: ClassVar[str] = "xchg"
+    r: int = 0
+    payload: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        p = d.get("payload")
+        if not isinstance(p, dict) or len(p) > MAX_PAYLOAD_ENTRIES:
+            raise WireError("bad_field", "payload must be a map of at most 32 arrays")
+        out = {}
+        for key, v in p.items():
+            out[_str(key, "payload key", 64)] = _dec_array(v)
+        return dict(r=_int(d.get("r"), "r", 0, 1000), payload=out)
+
+
+@dataclass
+class Estimate(Message):
+    """A node's (or the fusion solver's) estimate: ``x`` = x̂ₖ (used for scoring at tick k),
+    ``x_next`` = x̂ₖ₊₁ (after this tick's update); ``P`` an optional covariance of ``x_next``."""
+
+    TYPE: ClassVar[str] = "estimate"
+    x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    x_next: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    P: np.ndarray | None = None
+    name: str = ""
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        x = _dec_array(d.get("x"), ndim=(1,))
+        xn = _dec_array(d.get("x_next"), ndim=(1,))
+        if xn.shape != x.shape:
+            raise WireError("bad_shape", "x_next must have the shape of x")
+        P = d.get("P")
+        P = None if P is None else _dec_array(P, ndim=(2,))
+        if P is not None and P.shape != (x.size, x.size):
+            raise WireError("bad_shape", "P must be len(x) × len(x)")
+        return dict(x=x, x_next=xn, P=P, name=_str(d.get("name", ""), "name", 64))
+
+
+@dataclass
+class State(Message):
+    """A mobile agent's position and velocity after tick k (i.e. at tick k+1)."""
+
+    TYPE: ClassVar[str] = "state"
+    pos: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    vel: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        pos = _dec_array(d.get("pos"), ndim=(1,))
+        vel = _dec_array(d.get("vel"), ndim=(1,))
+        if pos.shape != vel.shape or pos.size > 3:
+            raise WireError("bad_shape", "pos and vel must be equal-length vectors of dimension ≤ 3")
+        return dict(pos=pos, vel=vel)
+
+
+@dataclass
+class Control(Message):
+    """Control-plane command (pause, resume, faults); ``args`` is a flat map of scalars/strings."""
+
+    TYPE: ClassVar[str] = "control"
+    verb: str = ""
+    args: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        args = d.get("args", {})
+        if not isinstance(args, dict) or len(args) > 64:
+            raise WireError("bad_field", "args must be a map")
+        clean = {}
+        for a, v in args.items():
+            a = _str(a, "arg name", 64)
+            if isinstance(v, (bool, str)) or v is None:
+                clean[a] = v
+            elif isinstance(v, int):
+                clean[a] = _int(v, a, -(2**53), 2**53)
+            elif isinstance(v, float):
+                clean[a] = _float(v, a)
+            elif isinstance(v, list) and len(v) <= MAX_LIST_LEN and all(
+                    isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+                clean[a] = [_float(x, a) for x in v]
+            else:
+                raise WireError("bad_field", f"arg {a} has an unsupported type")
+        return dict(verb=_str(d.get("verb"), "verb", 64), args=clean)
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    c.TYPE: c for c in (Tick, Truth, Meas, Xchg, Estimate, State, Control)
+}
+
+#: (first key segment, message type) -> whether the segment after it is an agent id
+_KEY_TYPES = {
+    ("world", "tick"): Tick,
+    ("target", "truth"): Truth,
+    ("target", "state"): State,
+    ("agent", "meas"): Meas,
+    ("agent", "xchg"): Xchg,
+    ("agent", "estimate"): Estimate,
+    ("agent", "state"): State,
+    ("fusion", "estimate"): Estimate,
+}
+
+
+def expected_type(key: str) -> tuple[type[Message], int | None]:
+    """Message class a relative key carries, and the agent id that owns it (None if not an agent key)."""
+    parts = key.split("/")
+    if parts[0] == "agent" and len(parts) == 3:
+        try:
+            owner = int(parts[1])
+        except ValueError:
+            raise WireError("bad_key", key) from None
+        t = _KEY_TYPES.get(("agent", parts[2]))
+        if t is None or owner < 0:
+            raise WireError("bad_key", key)
+        return t, owner
+    if parts[0] == "control" and len(parts) >= 2:
+        return Control, None
+    if len(parts) == 2 and (parts[0], parts[1]) in _KEY_TYPES:
+        return _KEY_TYPES[(parts[0], parts[1])], None
+    raise WireError("bad_key", key)
+
+
+def encode(msg: Message) -> bytes:
+    """msgpack bytes of a message (bin type for array data)."""
+    return msgpack.packb(msg.to_wire(), use_bin_type=True)
+
+
+def decode(key: str, data: bytes) -> Message:
+    """Decode and validate a message that arrived on relative ``key``. Raises :class:`WireError`."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise WireError("bad_encoding", "payload is not bytes")
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise WireError("too_large", f"{len(data)} bytes")
+    cls, owner = expected_type(key)
+    try:
+        d = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises many types on hostile input
+        raise WireError("bad_encoding", type(exc).__name__) from None
+    if not isinstance(d, dict):
+        raise WireError("bad_encoding", "top level must be a map")
+    if d.get("type") != cls.TYPE:
+        raise WireError("wrong_type", f"{d.get('type')!r} on {key}")
+    try:
+        msg = cls.from_wire(d)
+    except WireError:
+        raise
+    except Exception as exc:  # any other surprise in hostile input is still a drop, never a crash
+        raise WireError("bad_field", f"{type(exc).__name__}: {exc}") from None
+    if owner is not None and msg.src != owner:
+        raise WireError("not_owner", f"src {msg.src} on {key}")
+    return msg
+
+
+def key_for(msg: Message, role: str) -> str:
+    """Relative key a role publishes a message on (``role`` is 'agent', 'target', 'world', 'fusion')."""
+    if role == "agent":
+        return f"agent/{msg.src}/{msg.TYPE}"
+    if isinstance(msg, Control):
+        return f"control/{msg.verb}"
+    return f"{role}/{msg.TYPE}"

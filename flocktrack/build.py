@@ -1,0 +1,112 @@
+"""Scenario → role objects. The only place that knows every role's constructor (floor 3).
+
+:func:`design` computes, before the run, what needs the whole graph (Chen's gain K from λ₀ over all
+switching graphs, the TMSEE lower bound (12)); :func:`build_roles` then makes the world, the target and
+the sensors (and :func:`build_role` one of them, for a process of its own).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from agent.control.flocking import FlockingController
+from agent.estimators.registry import make_estimator
+from agent.models import IntelligentTarget, LinearSensor, LinearTarget
+from agent.roles.common import Role
+from agent.roles.sensor import SensorRole
+from agent.roles.target import TargetRole
+from agent.scenario import Scenario
+from agent.seeding import rng_for
+from topology.graph import GraphSpec, PeriodicSchedule
+from topology.world import WorldRole
+
+
+def schedule_of(sc: Scenario) -> PeriodicSchedule | None:
+    tp = sc.topology
+    if tp.kind != "schedule":
+        return None
+    graphs = tuple(GraphSpec(n=sc.sensors.n, edges=tuple(tuple(e) for e in g.edges), b=tuple(g.b),
+                             weights=None if g.weights is None else tuple(g.weights)) for g in tp.graphs)
+    return PeriodicSchedule(graphs=graphs, dwell_ticks=tp.dwell_ticks)
+
+
+def design(sc: Scenario) -> dict[str, Any]:
+    """Graph-wide, pre-run design parameters handed to every sensor (JSON-serialisable)."""
+    e = sc.estimator
+    out: dict[str, Any] = {}
+    if e.name == "hinf_switching":
+        from agent.estimators.hinf_switching import constant_gain, tmsee_lower_bound
+
+        sch = schedule_of(sc)
+        if sch is not None:
+            H = sch.H_list()
+        else:
+            H = [np.eye(1) * float(e.lambda0)]
+        Rd = np.eye(sc.C.shape[0]) if e.R_design is None else np.array(e.R_design, float)
+        Qd = sc.filter_Q() if e.Q_design is None else np.array(e.Q_design, float)
+        K = constant_gain(sc.A, sc.C, Qd, Rd, e.gamma, H)
+        out["K"] = np.asarray(K, float).tolist()
+        if sch is not None:
+            Rn = sc.R + (np.zeros_like(sc.R) if e.comm_noise is None else np.array(e.comm_noise, float))
+            Qw = sc.B @ sc.Qw @ sc.B.T
+            off = np.zeros((sc.sensors.n, sc.m)) if e.x0_offsets is None else np.array(e.x0_offsets, float)
+            Z0 = np.zeros((sc.sensors.n * sc.m, sc.sensors.n * sc.m))
+            for i in range(sc.sensors.n):
+                sl = slice(i * sc.m, (i + 1) * sc.m)
+                Z0[sl, sl] = np.outer(off[i], off[i])
+            H_seq = [sch.at(k).H() for k in range(sc.run.ticks)]
+            out["tmsee_lower"] = np.asarray(
+                tmsee_lower_bound(sc.A, sc.C, Qw, Rn, e.gamma, H_seq, Z0), float)[: sc.run.ticks].tolist()
+    return out
+
+
+@dataclass
+class Roles:
+    world: WorldRole
+    target: TargetRole
+    sensors: list[SensorRole]
+    design: dict[str, Any] = field(default_factory=dict)
+
+    def all(self) -> list[Role]:
+        return [self.world, self.target, *self.sensors]
+
+
+def build_target(sc: Scenario) -> TargetRole:
+    t = sc.target
+    x0 = np.array(t.x0, float)
+    rng = rng_for(sc.run.seed, "target", 0, "process_noise")
+    if t.kind == "intelligent":
+        Q = None if t.Q is None else sc.Qw
+        model = IntelligentTarget(sc.A, t.ke, x0, B=sc.B if Q is not None else None, Q=Q,
+                                  rng=rng if Q is not None else None)
+    else:
+        model = LinearTarget(sc.A, sc.B, sc.Qw, x0, rng)
+    return TargetRole(sc.run.ticks, model, t.kind == "intelligent", sc.pos_dims, t.estimate_source)
+
+
+def build_sensor(sc: Scenario, i: int, dsg: dict[str, Any]) -> SensorRole:
+    est = make_estimator(sc, i, dsg)
+    ctrl = None
+    if sc.sensors.motion == "flocking":
+        c = sc.control
+        ctrl = FlockingController(c.kc, c.kr, c.kd, c.h1, c.h2, c.l1, c.l2, c.u_max)
+    q0 = sc.initial_positions()[i]
+    return SensorRole(i, sc.run.ticks, sc.run.T, est, LinearSensor(sc.C, sc.R),
+                      rng_for(sc.run.seed, "agent", i, "measurement"), q0, None, ctrl, sc.pos_dims)
+
+
+def build_world(sc: Scenario) -> WorldRole:
+    tp = sc.topology
+    x0 = np.array(sc.target.x0, float)
+    P0 = sc.initial_positions()
+    return WorldRole(sc.sensors.n, sc.run.ticks, sc.run.T, P0, x0[: min(sc.pos_dims, P0.shape[1])],
+                     schedule=schedule_of(sc), radius=tp.range, sensing_range=sc.sensors.sensing_range,
+                     beta=sc.sensors.beta)
+
+
+def build_roles(sc: Scenario, dsg: dict[str, Any] | None = None) -> Roles:
+    dsg = design(sc) if dsg is None else dsg
+    return Roles(build_world(sc), build_target(sc), [build_sensor(sc, i, dsg) for i in range(sc.sensors.n)], dsg)

@@ -1,0 +1,44 @@
+"""The in-process engine: every role on one :class:`agent.bus.LocalBus`, lockstep, deterministic.
+
+Delivery is FIFO and synchronous. When the bus goes idle while some role still waits (a message that
+will never come), the deadline fires for every waiting role in a fixed order — the in-process
+equivalent of a lockstep deadline — so the run always completes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from agent.bus import LocalBus
+from agent.scenario import Scenario
+
+from .build import Roles, build_roles
+from .metrics import MetricsCollector
+
+
+def run_inproc(sc: Scenario, progress: Callable[[int, int], None] | None = None,
+               bus: LocalBus | None = None) -> tuple[MetricsCollector, Roles, LocalBus]:
+    bus = LocalBus() if bus is None else bus
+    roles = build_roles(sc)
+    metrics = MetricsCollector(sc.sensors.n, sc.run.ticks, sc.pos_dims, sc.run.burn_in,
+                               roles.design.get("tmsee_lower"))
+    metrics.subscribe(bus)
+    for r in roles.all():
+        r.attach(bus)
+    roles.world.start()
+    last_k = -1
+    while not roles.world.finished:
+        bus.drain()
+        if roles.world.finished:
+            break
+        if bus.idle:
+            stuck = [r for r in roles.all() if r.waiting]
+            if not stuck:
+                raise RuntimeError(f"in-process run stalled at tick {roles.world.k} with no role waiting")
+            for r in stuck:
+                r.on_deadline()
+        if progress is not None and roles.world.k != last_k:
+            last_k = roles.world.k
+            progress(last_k, sc.run.ticks)
+    bus.drain()
+    return metrics, roles, bus
