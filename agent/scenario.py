@@ -451,7 +451,7 @@ def validate(sc: Scenario) -> Scenario:
             for ei, (a, bb) in enumerate(g.edges):
                 if not (0 <= a < s.n and 0 <= bb < s.n) or a == bb:
                     raise ScenarioError(src, f"{key}.edges[{ei}]", f"edge [{a}, {bb}] must join two different "
-                                        f"sensors in 0..{s.n - 1}")
+                                        f"sensors in 0..{s.n - 1}", "use sensor ids 0 … n−1 and no self-loops")
             if g.weights is not None and len(g.weights) != len(g.edges):
                 raise ScenarioError(src, f"{key}.weights", "expected one weight per edge")
         if not any(v > 0 for g in tp.graphs for v in g.b):
