@@ -132,3 +132,149 @@ class LocalBus:
     def close(self) -> None:
         self._queue.clear()
         self._subs.clear()
+
+
+# ============================================================================ Zenoh
+
+def zenoh_config(connect: str | None = None, listen: str | None = None, mode: str = "client",
+                 config_file: str | None = None):
+    """A Zenoh config: from a json5 file if given, then mode/endpoints; multicast scouting off
+    (endpoints are always explicit in flocktrack)."""
+    import json
+
+    import zenoh
+
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect.split(",")))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen.split(",")))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+class ZenohBus:
+    """One role per OS process over Eclipse Zenoh, on the key space ``ft/<run>/…``.
+
+    Zenoh delivers samples on its own threads; the callbacks only enqueue ``(key, bytes, handler)``.
+    The role's thread calls :meth:`poll`, which decodes and validates each message through the same
+    :func:`deliver` as :class:`LocalBus` — so roles never run concurrently with themselves and a bad
+    message is dropped and counted exactly as in-process.
+
+    Membership: :meth:`declare_token` makes this process visible under ``ft/<run>/alive/<name>``;
+    :meth:`watch_members` reports tokens appearing and disappearing (a killed process's token
+    disappears when the router's lease on its session expires).
+    """
+
+    def __init__(self, run: str, connect: str | None = None, config_file: str | None = None,
+                 mode: str = "client", session=None):
+        import queue
+
+        import zenoh
+
+        self._zenoh = zenoh
+        self.prefix = f"ft/{run}/"
+        self.session = session if session is not None else zenoh.open(zenoh_config(connect, None, mode, config_file))
+        self._own_session = session is None
+        self.stats = BusStats()
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._pubs: dict[str, object] = {}
+        self._decls: list = []
+        self._closed = False
+
+    # ------------------------------------------------------------------ Bus protocol
+    def publish(self, key: str, msg: wire.Message) -> None:
+        self.publish_raw(key, wire.encode(msg))
+
+    def publish_raw(self, key: str, data: bytes) -> None:
+        pub = self._pubs.get(key)
+        if pub is None:
+            z = self._zenoh
+            pub = self._pubs[key] = self.session.declare_publisher(
+                self.prefix + key, congestion_control=z.CongestionControl.BLOCK)
+        pub.put(data)
+        self.stats.sent += 1
+
+    def subscribe(self, pattern: str, handler: Handler) -> None:
+        n = len(self.prefix)
+        q = self._q
+
+        def on_sample(sample) -> None:
+            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), handler))
+
+        self._decls.append(self.session.declare_subscriber(self.prefix + pattern, on_sample))
+
+    def subscribe_raw(self, pattern: str, callback: Callable[[str, bytes], None]) -> None:
+        """Undecoded samples (recorder), delivered through :meth:`poll` like the others."""
+        n = len(self.prefix)
+        q = self._q
+
+        def on_sample(sample) -> None:
+            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), ("raw", callback)))
+
+        self._decls.append(self.session.declare_subscriber(self.prefix + pattern, on_sample))
+
+    def poll(self, timeout: float = 0.05, max_messages: int = 10_000) -> int:
+        """Deliver queued messages on the caller's thread; wait up to ``timeout`` for the first."""
+        import queue
+
+        n = 0
+        try:
+            item = self._q.get(timeout=timeout) if timeout > 0 else self._q.get_nowait()
+        except queue.Empty:
+            return 0
+        while True:
+            key, data, handler = item
+            if isinstance(handler, tuple):
+                try:
+                    handler[1](key, data)
+                except Exception:
+                    self.stats.handler_errors += 1
+                    log.exception("%s callback failed on %s", handler[0], key)
+            else:
+                deliver(self.stats, [handler], key, data)
+            n += 1
+            if n >= max_messages:
+                return n
+            try:
+                item = self._q.get_nowait()
+            except queue.Empty:
+                return n
+
+    # ------------------------------------------------------------------ membership
+    def declare_token(self, name: str):
+        tok = self.session.liveliness().declare_token(self.prefix + "alive/" + name)
+        self._decls.append(tok)
+        return tok
+
+    def watch_members(self, callback: Callable[[str, bool], None]) -> None:
+        """``callback(name, alive)`` for every token under ``alive/**`` (present ones first),
+        delivered through :meth:`poll` on the role's thread."""
+        n = len(self.prefix + "alive/")
+        q = self._q
+        z = self._zenoh
+
+        def on_token(sample) -> None:
+            alive = sample.kind == z.SampleKind.PUT
+            q.put((str(sample.key_expr)[n:], alive, ("member", callback)))
+
+        self._decls.append(self.session.liveliness().declare_subscriber(self.prefix + "alive/**", on_token,
+                                                                        history=True))
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for d in reversed(self._decls):
+            try:
+                d.undeclare()
+            except Exception:  # already gone with the session
+                pass
+        for p in self._pubs.values():
+            try:
+                p.undeclare()
+            except Exception:
+                pass
+        if self._own_session:
+            self.session.close()

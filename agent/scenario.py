@@ -3,7 +3,7 @@ key and what was expected (and how to fix it).
 
 A scenario has these tables (every key optional unless marked *required*; see ``scenarios/*.toml``):
 
-``[run]``        name, ticks, T (s), seed, mode ("lockstep" | "realtime"), deadline_s
+``[run]``        name, ticks, T (s), seed, mode ("lockstep" | "realtime"), deadline_s, burn_in, speed
 ``[target]``     kind ("normal" | "intelligent"), model ("double_integrator" | "matrices"), dim, A, B,
                  Q (covariance of w in x⁺ = Ax + Bw), x0 (*required*), ke, estimate_source
 ``[sensors]``    n (*required*), C, R, positions | (grid_rows, spacing, jitter, origin), motion
@@ -56,6 +56,7 @@ class RunCfg:
     mode: Literal["lockstep", "realtime"] = "lockstep"
     deadline_s: float = 5.0  #: per-wait deadline (lockstep: only guards against dead processes)
     burn_in: int = 0         #: ticks excluded from the RMSE summaries
+    speed: float = 1.0       #: realtime factor: a tick lasts T / speed seconds of wall-clock time
 
 
 @dataclass(frozen=True)
@@ -353,6 +354,8 @@ def validate(sc: Scenario) -> Scenario:
         raise ScenarioError(src, "run.ticks", f"must be ≥ 1, got {r.ticks}")
     if not r.T > 0:
         raise ScenarioError(src, "run.T", f"sample time must be > 0, got {r.T}")
+    if not r.speed > 0:
+        raise ScenarioError(src, "run.speed", f"realtime factor must be > 0, got {r.speed}", "e.g. speed = 1.0")
     if s.n < 1:
         raise ScenarioError(src, "sensors.n", f"need at least one sensor, got {s.n}")
     m = len(t.x0)

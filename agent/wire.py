@@ -13,6 +13,7 @@ key                        type          published by
 ``agent/<i>/estimate``     Estimate      sensor i (x̂ₖ and x̂ₖ₊₁)
 ``agent/<i>/state``        State         sensor i (position/velocity after tick k)
 ``fusion/estimate``        Estimate      the fusion solver
+``world/end``              End           the world (the run is over)
 ``control/<verb>``         Control       dashboard / CLI (faults, pause, ...)
 =========================  ============  =======================================================
 
@@ -322,13 +323,26 @@ class Control(Message):
         return dict(verb=_str(d.get("verb"), "verb", 64), args=clean)
 
 
+@dataclass
+class End(Message):
+    """World → all: the run is over after ``k`` ticks (``reason``: "done", "stopped")."""
+
+    TYPE: ClassVar[str] = "end"
+    reason: str = "done"
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        return dict(reason=_str(d.get("reason", "done"), "reason", 64))
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    c.TYPE: c for c in (Tick, Truth, Meas, Xchg, Estimate, State, Control)
+    c.TYPE: c for c in (Tick, Truth, Meas, Xchg, Estimate, State, Control, End)
 }
 
 #: (first key segment, message type) -> whether the segment after it is an agent id
 _KEY_TYPES = {
     ("world", "tick"): Tick,
+    ("world", "end"): End,
     ("target", "truth"): Truth,
     ("target", "state"): State,
     ("agent", "meas"): Meas,
@@ -396,3 +410,57 @@ def key_for(msg: Message, role: str) -> str:
     if isinstance(msg, Control):
         return f"control/{msg.verb}"
     return f"{role}/{msg.TYPE}"
+
+
+def _array_fields(cls: type[Message]) -> set[str]:
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    return {f.name for f in fields(cls) if "ndarray" in str(hints[f.name])}
+
+
+def from_json(d: dict) -> Message:
+    """Inverse of :meth:`Message.to_json` (recordings → messages), validated like :func:`decode`."""
+    cls = MESSAGE_TYPES.get(d.get("type")) if isinstance(d, dict) else None
+    if cls is None:
+        raise WireError("wrong_type", f"unknown message type {d.get('type') if isinstance(d, dict) else d!r}")
+    arrays = _array_fields(cls)
+    w: dict[str, Any] = {}
+    for k, v in d.items():
+        if k == "payload" and isinstance(v, dict):
+            w[k] = {pk: _enc_array(np.array(pv, dtype=float)) for pk, pv in v.items()}
+        elif k in arrays and v is not None:
+            w[k] = _enc_array(np.array(v, dtype=float))
+        else:
+            w[k] = v
+    try:
+        return cls.from_wire(w)
+    except WireError:
+        raise
+    except Exception as exc:
+        raise WireError("bad_field", f"{type(exc).__name__}: {exc}") from None
+
+
+def json_schema(cls: type[Message]) -> dict:
+    """A JSON Schema for a message type's JSON form (recordings: Foxglove shows fields by it)."""
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    props: dict[str, Any] = {"type": {"type": "string", "const": cls.TYPE}}
+    for f in fields(cls):
+        h = str(hints[f.name])
+        if f.name == "payload":
+            props[f.name] = {"type": "object", "additionalProperties": {"type": "array"}}
+        elif "ndarray" in h:
+            props[f.name] = {"type": ["array", "null"] if "None" in h else "array"}
+        elif h.startswith("list") or "list[" in h:
+            props[f.name] = {"type": "array"}
+        elif hints[f.name] is int:
+            props[f.name] = {"type": "integer"}
+        elif hints[f.name] is float:
+            props[f.name] = {"type": "number"}
+        elif hints[f.name] is str:
+            props[f.name] = {"type": "string"}
+        else:
+            props[f.name] = {}
+    return {"title": f"flocktrack.{cls.__name__}", "type": "object", "properties": props}

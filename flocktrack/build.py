@@ -12,25 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from agent.control.flocking import FlockingController
-from agent.estimators.registry import make_estimator
-from agent.models import IntelligentTarget, LinearSensor, LinearTarget
+from agent.assemble import build_sensor, build_target
 from agent.roles.common import Role
 from agent.roles.sensor import SensorRole
 from agent.roles.target import TargetRole
 from agent.scenario import Scenario
-from agent.seeding import rng_for
-from topology.graph import GraphSpec, PeriodicSchedule
-from topology.world import WorldRole
-
-
-def schedule_of(sc: Scenario) -> PeriodicSchedule | None:
-    tp = sc.topology
-    if tp.kind != "schedule":
-        return None
-    graphs = tuple(GraphSpec(n=sc.sensors.n, edges=tuple(tuple(e) for e in g.edges), b=tuple(g.b),
-                             weights=None if g.weights is None else tuple(g.weights)) for g in tp.graphs)
-    return PeriodicSchedule(graphs=graphs, dwell_ticks=tp.dwell_ticks)
+from topology.world import WorldRole, build_world, schedule_of
 
 
 def design(sc: Scenario) -> dict[str, Any]:
@@ -72,39 +59,6 @@ class Roles:
 
     def all(self) -> list[Role]:
         return [self.world, self.target, *self.sensors]
-
-
-def build_target(sc: Scenario) -> TargetRole:
-    t = sc.target
-    x0 = np.array(t.x0, float)
-    rng = rng_for(sc.run.seed, "target", 0, "process_noise")
-    if t.kind == "intelligent":
-        Q = None if t.Q is None else sc.Qw
-        model = IntelligentTarget(sc.A, t.ke, x0, B=sc.B if Q is not None else None, Q=Q,
-                                  rng=rng if Q is not None else None)
-    else:
-        model = LinearTarget(sc.A, sc.B, sc.Qw, x0, rng)
-    return TargetRole(sc.run.ticks, model, t.kind == "intelligent", sc.pos_dims, t.estimate_source)
-
-
-def build_sensor(sc: Scenario, i: int, dsg: dict[str, Any]) -> SensorRole:
-    est = make_estimator(sc, i, dsg)
-    ctrl = None
-    if sc.sensors.motion == "flocking":
-        c = sc.control
-        ctrl = FlockingController(c.kc, c.kr, c.kd, c.h1, c.h2, c.l1, c.l2, c.u_max)
-    q0 = sc.initial_positions()[i]
-    return SensorRole(i, sc.run.ticks, sc.run.T, est, LinearSensor(sc.C, sc.R),
-                      rng_for(sc.run.seed, "agent", i, "measurement"), q0, None, ctrl, sc.pos_dims)
-
-
-def build_world(sc: Scenario) -> WorldRole:
-    tp = sc.topology
-    x0 = np.array(sc.target.x0, float)
-    P0 = sc.initial_positions()
-    return WorldRole(sc.sensors.n, sc.run.ticks, sc.run.T, P0, x0[: min(sc.pos_dims, P0.shape[1])],
-                     schedule=schedule_of(sc), radius=tp.range, sensing_range=sc.sensors.sensing_range,
-                     beta=sc.sensors.beta)
 
 
 def build_roles(sc: Scenario, dsg: dict[str, Any] | None = None) -> Roles:

@@ -1,16 +1,17 @@
 """The ``flocktrack`` command.
 
     flocktrack validate SCENARIO
-    flocktrack run SCENARIO [--transport inproc] [--ticks N] [--seed S] [--estimator NAME]
-                            [--rounds R] [--set section.key=value ...] --out DIR
+    flocktrack run SCENARIO [--transport zenoh|inproc] [--mode lockstep|realtime] [--ticks N] [--seed S]
+                            [--estimator NAME] [--rounds R] [--set section.key=value ...]
+                            [--restart never|on-failure] --out DIR
+    flocktrack metrics RECORDING --out DIR
+    flocktrack replay RECORDING [--connect ENDPOINT] [--speed X]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 import tomllib
 from pathlib import Path
 
@@ -24,12 +25,13 @@ def _parse_value(text: str):
         return text
 
 
-def apply_overrides(path: str, sets: list[str], **named) -> Scenario:
-    """Load a scenario, apply ``section.key=value`` overrides (TOML values), validate once."""
-    sc = load_scenario(path)
-    if not sets and not any(v is not None for v in named.values()):
-        return sc
-    data = tomllib.loads(Path(path).read_text())
+def scenario_data(path: str, sets: list[str], **named) -> dict:
+    """The scenario's TOML mapping with ``section.key=value`` overrides (TOML values) applied."""
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except (OSError, tomllib.TOMLDecodeError):
+        load_scenario(path)  # raises the precise ScenarioError
+        raise
     for s in sets:
         dotted, sep, raw = s.partition("=")
         if not sep or "." not in dotted:
@@ -40,7 +42,12 @@ def apply_overrides(path: str, sets: list[str], **named) -> Scenario:
         if v is not None:
             sect, _, key = dotted.partition(".")
             data.setdefault(sect, {})[key] = v
-    return parse_scenario(data, path)
+    return data
+
+
+def apply_overrides(path: str, sets: list[str], **named) -> Scenario:
+    """Load a scenario, apply overrides, validate once."""
+    return parse_scenario(scenario_data(path, sets, **named), path)
 
 
 def cmd_validate(args) -> int:
@@ -50,51 +57,47 @@ def cmd_validate(args) -> int:
     return 0
 
 
-def _progress():
-    """A rich progress bar on a terminal, plain periodic lines otherwise."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    if sys.stderr.isatty():
-        prog = Progress(TextColumn("[bold]ticks"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                        transient=True)
-        return prog
-    return None
-
-
 def cmd_run(args) -> int:
-    sc = apply_overrides(args.scenario, args.set or [], **{
-        "run.ticks": args.ticks, "run.seed": args.seed, "estimator.name": args.estimator,
-        "estimator.rounds": args.rounds})
+    named = {"run.ticks": args.ticks, "run.seed": args.seed, "estimator.name": args.estimator,
+             "estimator.rounds": args.rounds, "run.mode": args.mode}
+    data = scenario_data(args.scenario, args.set or [], **named)
+    sc = parse_scenario(data, args.scenario)
     out = Path(args.out)
-    if args.transport != "inproc":
-        print(f"error: transport {args.transport!r} is not available yet; use --transport inproc", file=sys.stderr)
-        return 2
-    from .inproc import run_inproc
+    out.mkdir(parents=True, exist_ok=True)
+    from .run import run_inproc_to_dir, run_zenoh_to_dir
 
-    t0 = time.perf_counter()
-    prog = _progress()
-    if prog is not None:
-        with prog:
-            task = prog.add_task("run", total=sc.run.ticks)
-            metrics, roles, bus = run_inproc(sc, progress=lambda k, n: prog.update(task, completed=k))
+    if args.transport == "inproc":
+        summary, info = run_inproc_to_dir(sc, data, out, record=args.record, show_progress=True)
     else:
-        step = max(1, sc.run.ticks // 10)
+        summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
+                                         max_restarts=args.max_restarts, quiet=args.quiet)
+        if info.get("rc") not in (0, None):
+            print(f"error: run ended with code {info['rc']}; see {out}/logs/", file=sys.stderr)
+            return 1
+    print(f"{sc.run.name}: {sc.run.ticks} ticks in {info['wall_s']:.1f} s over {args.transport} — network RMSE "
+          f"{_g(summary.get('network_rmse'))}, final {_g(summary.get('final_rmse'))}, "
+          f"min distance {_g(summary.get('min_inter_agent_distance'))}, λ₂ min {_g(summary.get('lambda2_min'))}; "
+          f"wrote {out}/summary.json, metrics.csv")
+    return 0
 
-        def report(k: int, n: int) -> None:
-            if k % step == 0:
-                print(f"tick {k}/{n}", file=sys.stderr, flush=True)
 
-        metrics, roles, bus = run_inproc(sc, progress=report)
-    wall = time.perf_counter() - t0
-    extra = {"scenario": sc.run.name, "estimator": sc.estimator.name, "seed": sc.run.seed,
-             "transport": args.transport, "ticks": sc.run.ticks, "n_sensors": sc.sensors.n,
-             "bus": bus.stats.as_dict(),
-             "sensor_counters": [dict(sorted(s.counters.items())) for s in roles.sensors]}
-    summary = metrics.write(out, extra)
-    (out / "timing.json").write_text(json.dumps({"wall_s": wall, "ticks_per_s": sc.run.ticks / wall}, indent=2))
-    print(f"{sc.run.name}: {sc.run.ticks} ticks in {wall:.1f} s — network RMSE {summary['network_rmse']:.4g}, "
-          f"final {summary['final_rmse']:.4g}, min distance {summary['min_inter_agent_distance']}, "
-          f"λ₂ min {summary['lambda2_min']}; wrote {out}/summary.json, metrics.csv")
+def _g(v) -> str:
+    return "n/a" if v is None else f"{v:.4g}"
+
+
+def cmd_metrics(args) -> int:
+    from .record import metrics_from_recording
+
+    s = metrics_from_recording(args.recording, args.out)
+    print(f"{args.recording}: network RMSE {_g(s.get('network_rmse'))} over {s['ticks_seen']} ticks; wrote {args.out}/summary.json")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from .run import replay
+
+    n = replay(args.recording, connect=args.connect, speed=args.speed, port=args.port)
+    print(f"replayed {n} messages from {args.recording}")
     return 0
 
 
@@ -106,7 +109,14 @@ def main(argv: list[str] | None = None) -> int:
     v.set_defaults(fn=cmd_validate)
     r = sub.add_parser("run", help="run a scenario")
     r.add_argument("scenario")
-    r.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc")
+    r.add_argument("--transport", choices=["inproc", "zenoh"], default="zenoh",
+                   help="zenoh: one OS process per agent over an embedded router (default); inproc: one process")
+    r.add_argument("--mode", choices=["lockstep", "realtime"], help="override run.mode")
+    r.add_argument("--port", type=int, help="embedded router port (default: a free one)")
+    r.add_argument("--restart", choices=["never", "on-failure"], default="never", help="sensor restart policy")
+    r.add_argument("--max-restarts", type=int, default=3)
+    r.add_argument("--record", action="store_true", help="inproc: also write DIR/recording.mcap (zenoh always records)")
+    r.add_argument("--quiet", action="store_true", help="do not forward the processes' logs")
     r.add_argument("--ticks", type=int)
     r.add_argument("--seed", type=int)
     r.add_argument("--estimator", choices=["minimax", "kalman", "hinf_switching"])
@@ -114,6 +124,16 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
     r.add_argument("--out", required=True)
     r.set_defaults(fn=cmd_run)
+    mt = sub.add_parser("metrics", help="recompute summary.json from a recording")
+    mt.add_argument("recording")
+    mt.add_argument("--out", required=True)
+    mt.set_defaults(fn=cmd_metrics)
+    rp = sub.add_parser("replay", help="re-publish a recording on Zenoh")
+    rp.add_argument("recording")
+    rp.add_argument("--connect", help="router endpoint (default: open an embedded router)")
+    rp.add_argument("--port", type=int, default=7447)
+    rp.add_argument("--speed", type=float, default=1.0, help="realtime factor (0 = as fast as possible)")
+    rp.set_defaults(fn=cmd_replay)
     args = ap.parse_args(argv)
     try:
         return args.fn(args)

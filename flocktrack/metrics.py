@@ -28,6 +28,12 @@ from agent.wire import Estimate, Message, State, Tick, Truth
 from topology.graph import algebraic_connectivity, is_connected
 
 
+def summary_identity(sc) -> dict:
+    """What identifies a run in ``summary.json`` (transport-independent by design)."""
+    return {"scenario": sc.run.name, "estimator": sc.estimator.name, "seed": sc.run.seed,
+            "ticks": sc.run.ticks, "n_sensors": sc.sensors.n, "rounds": sc.estimator.rounds}
+
+
 class MetricsCollector:
     def __init__(self, n: int, ticks: int, pos_dims: int, burn_in: int = 0,
                  tmsee_lower: Sequence[float] | None = None):
@@ -39,7 +45,7 @@ class MetricsCollector:
         self._target_pos: dict[int, np.ndarray] = {}
 
     def subscribe(self, bus) -> None:
-        for pat in ("world/tick", "target/truth", "agent/*/estimate"):
+        for pat in ("world/tick", "target/truth", "agent/*/estimate", "target/state"):
             bus.subscribe(pat, self.ingest)
 
     def ingest(self, key: str, msg: Message) -> None:

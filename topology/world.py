@@ -17,9 +17,31 @@ import numpy as np
 
 from agent.bus import Bus
 from agent.roles.common import Role
-from agent.wire import Message, State, Tick
+from agent.wire import End, Message, State, Tick
 
-from .graph import PeriodicSchedule, edge_weights, max_degree, neighbour_lists, range_adjacency
+from agent.scenario import Scenario
+
+from .graph import GraphSpec, PeriodicSchedule, edge_weights, max_degree, neighbour_lists, range_adjacency
+
+
+def schedule_of(sc: Scenario) -> PeriodicSchedule | None:
+    """The scenario's switching schedule (None for range-based links)."""
+    tp = sc.topology
+    if tp.kind != "schedule":
+        return None
+    graphs = tuple(GraphSpec(n=sc.sensors.n, edges=tuple(tuple(e) for e in g.edges), b=tuple(g.b),
+                             weights=None if g.weights is None else tuple(g.weights)) for g in tp.graphs)
+    return PeriodicSchedule(graphs=graphs, dwell_ticks=tp.dwell_ticks)
+
+
+def build_world(sc: Scenario, **kw) -> "WorldRole":
+    """The world role of a scenario (extra keyword arguments go to :class:`WorldRole`)."""
+    tp = sc.topology
+    x0 = np.array(sc.target.x0, float)
+    P0 = sc.initial_positions()
+    return WorldRole(sc.sensors.n, sc.run.ticks, sc.run.T, P0, x0[: min(sc.pos_dims, P0.shape[1])],
+                     schedule=schedule_of(sc), radius=tp.range, sensing_range=sc.sensors.sensing_range,
+                     beta=sc.sensors.beta, speed=sc.run.speed, **kw)
 
 
 class WorldRole(Role):
@@ -27,8 +49,13 @@ class WorldRole(Role):
 
     def __init__(self, n: int, ticks: int, T: float, positions0: np.ndarray, target_pos0: np.ndarray,
                  schedule: PeriodicSchedule | None = None, radius: float = np.inf,
-                 sensing_range: float = np.inf, beta: float = 1.0):
+                 sensing_range: float = np.inf, beta: float = 1.0, realtime: bool = False, speed: float = 1.0):
         super().__init__(ticks)
+        self.realtime = bool(realtime)
+        self.period = float(T) / float(speed)  # wall-clock seconds per tick in realtime
+        self._t0: float | None = None
+        self._expected: set[int] = set()
+        self.stats = {"late_states": 0, "missing_states": 0}
         self.n, self.T = int(n), float(T)
         self.schedule = schedule
         self.radius = float(radius)
@@ -58,6 +85,24 @@ class WorldRole(Role):
     def start(self) -> None:
         self._publish_tick()
 
+    def on_member(self, role: str, ident: int, alive: bool) -> None:
+        """A sensor process appeared or vanished: a dead node has no links until it returns; a
+        returning node is expected to report from the next tick on."""
+        if role == "agent" and 0 <= ident < self.n and self.alive[ident] != alive:
+            self.alive[ident] = alive
+            if not alive:
+                self._expected.discard(ident)
+                self._check()
+
+    def on_timer(self, now: float) -> None:
+        """Realtime pacing: tick k closes at t0 + (k+1)·T whatever has arrived (late = lost)."""
+        if not self.realtime or self.finished:
+            return
+        if self._t0 is None:
+            self._t0 = now
+        if self._open and now >= self._t0 + (self.k + 1) * self.period:
+            self._advance()
+
     # ------------------------------------------------------------------ the link table
     def make_tick(self, k: int) -> Tick:
         if self.schedule is not None:
@@ -78,6 +123,7 @@ class WorldRole(Role):
 
     def _publish_tick(self) -> None:
         self.last_tick = self.make_tick(self.k)
+        self._expected = {i for i in range(self.n) if self.alive[i]}
         self._open = True
         self.publish("world/tick", self.last_tick)
 
@@ -87,6 +133,8 @@ class WorldRole(Role):
         if msg.k == self.k and msg.src < self.n:
             self._states[msg.src] = msg
             self._check()
+        elif msg.k < self.k:
+            self.stats["late_states"] += 1
 
     def _on_target_state(self, key: str, msg: Message) -> None:
         assert isinstance(msg, State)
@@ -95,8 +143,9 @@ class WorldRole(Role):
             self._check()
 
     def _check(self) -> None:
-        if self._open and self._target_state is not None and all(
-                i in self._states for i in range(self.n) if self.alive[i]):
+        if self.realtime:
+            return  # realtime: the clock closes the tick (on_timer)
+        if self._open and self._target_state is not None and all(i in self._states for i in self._expected):
             self._advance()
 
     def on_deadline(self) -> None:
@@ -104,6 +153,7 @@ class WorldRole(Role):
             self._advance()
 
     def _advance(self) -> None:
+        self.stats["missing_states"] += len(self._expected - set(self._states))
         for i, s in self._states.items():
             self.positions[i] = s.pos[: self.positions.shape[1]]
         if self._target_state is not None:
@@ -114,3 +164,5 @@ class WorldRole(Role):
         self.k += 1
         if not self.finished:
             self._publish_tick()
+        else:
+            self.publish("world/end", End(k=self.k, reason="done"))

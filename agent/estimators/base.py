@@ -92,14 +92,22 @@ class Estimator(ABC):
         """Expected shape of each payload entry (used to drop malformed neighbour payloads)."""
         return {}
 
-    def reinitialise(self, neighbour_estimates: Mapping[int, np.ndarray]) -> None:
-        """Re-start from neighbours' estimates (a restarted node rejoining). Default: their mean."""
+    def reinitialise(self, neighbour_estimates: Mapping[int, np.ndarray],
+                     neighbour_covariances: Mapping[int, np.ndarray] | None = None) -> None:
+        """Re-start from neighbours' estimates (a restarted node rejoining): the mean of their x̂
+        (and of their P, where the estimator carries one), instead of the prior x̂₀."""
         if neighbour_estimates:
             xs = [np.asarray(neighbour_estimates[j], float) for j in sorted(neighbour_estimates)]
             self._set_x(np.mean(xs, axis=0))
+        if neighbour_covariances:
+            Ps = [np.asarray(neighbour_covariances[j], float) for j in sorted(neighbour_covariances)]
+            self._set_P(np.mean(Ps, axis=0))
 
     def _set_x(self, x: np.ndarray) -> None:  # pragma: no cover - overridden where supported
         raise NotImplementedError
+
+    def _set_P(self, P: np.ndarray) -> None:  # noqa: N802 - estimators without a covariance ignore it
+        """Overwrite the covariance/Riccati matrix (only estimators that have one)."""
 
 
 def valid_inbox(inbox: Mapping[int, Payload], shapes: Mapping[str, tuple[int, ...]]) -> dict[int, Payload]:

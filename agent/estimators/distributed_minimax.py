@@ -117,6 +117,9 @@ class DistributedMinimax(Estimator):
         m = self.A.shape[0]
         return {"chi1": (m, m), "chi2": (m,), "chi3": (m, m)}
 
+    def _set_P(self, P: np.ndarray) -> None:  # noqa: N802
+        self._P = sym(np.array(P, dtype=float))
+
     def _set_x(self, x: np.ndarray) -> None:
         x = np.asarray(x, dtype=float)
         if x.shape != self._x.shape:

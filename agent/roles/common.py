@@ -40,3 +40,17 @@ class Role:
 
     def on_deadline(self) -> None:
         """The wait for the current step timed out: go on with what has arrived."""
+
+    @property
+    def wait_key(self) -> tuple | None:
+        """Identifies the current wait (e.g. (k, r)); a driver fires :meth:`on_deadline` when the same
+        wait lasts longer than its deadline. None when not waiting."""
+        if not self.waiting:
+            return None
+        return (getattr(self, "k", 0), getattr(self, "r", 0))
+
+    def on_member(self, role: str, ident: int, alive: bool) -> None:
+        """Membership change seen by the transport (a process appeared or vanished)."""
+
+    def on_timer(self, now: float) -> None:
+        """Called periodically by a realtime driver with the wall-clock time (s)."""

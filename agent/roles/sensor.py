@@ -30,8 +30,11 @@ class SensorRole(Role):
 
     def __init__(self, i: int, ticks: int, T: float, estimator: Estimator, sensor: LinearSensor,
                  rng: np.random.Generator, q0: np.ndarray, p0: np.ndarray | None = None,
-                 controller=None, pos_dims: int = 2):
+                 controller=None, pos_dims: int = 2, rejoin: bool = False):
         super().__init__(ticks)
+        self.rejoin = bool(rejoin)
+        self._joining = False
+        self._peer_est: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         self.i, self.T = int(i), float(T)
         self.est = estimator
         self.sensor = sensor
@@ -54,6 +57,8 @@ class SensorRole(Role):
         bus.subscribe("world/tick", self._on_tick)
         bus.subscribe("target/truth", self._on_truth)
         bus.subscribe("agent/*/xchg", self._on_xchg)
+        if self.rejoin:
+            bus.subscribe("agent/*/estimate", self._on_peer_estimate)
 
     @property
     def finished(self) -> bool:
@@ -66,6 +71,16 @@ class SensorRole(Role):
     # ------------------------------------------------------------------ handlers
     def _on_tick(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Tick)
+        if self.rejoin and not self._joining and msg.k > self.k and msg.n > self.i:
+            # a restarted process joining a running flock: take up the world's clock and our last
+            # known position, and re-initialise the filter from the neighbours' estimates (_begin)
+            self.k = msg.k
+            self._joining = True
+            self.q = np.array(msg.positions[self.i][: self.q.size], float)
+            self.p = np.zeros_like(self.q)
+            for d in (self._ticks, self._truth):
+                for kk in [kk for kk in d if kk < self.k]:
+                    del d[kk]
         if msg.k >= self.k and msg.n > self.i:
             self._ticks[msg.k] = msg
             self._try_begin()
@@ -75,6 +90,18 @@ class SensorRole(Role):
         if msg.k >= self.k:
             self._truth[msg.k] = msg
             self._try_begin()
+
+    def _on_peer_estimate(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Estimate)
+        if msg.src != self.i and (self._joining or self.k == 0):
+            self._peer_est[msg.src] = (msg.x_next, msg.P)
+
+    def on_member(self, role: str, ident: int, alive: bool) -> None:
+        """A neighbour process vanished: stop waiting for its payloads this tick."""
+        if role == "agent" and not alive and ident in self._nbrs and self.r >= 0:
+            self._nbrs = [j for j in self._nbrs if j != ident]
+            self.counters["neighbours_lost"] += 1
+            self._check_round()
 
     def _on_xchg(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Xchg)
@@ -112,8 +139,16 @@ class SensorRole(Role):
         b = float(tick.b[self.i])
         y = self.sensor.measure(truth.x, b, self.rng)
         self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy()))
-        self._prior = self.est.x.copy()
         self._nbrs = self._neighbours()
+        if self._joining:
+            src = [j for j in self._nbrs if j in self._peer_est] or sorted(self._peer_est)
+            if src:
+                self.est.reinitialise({j: self._peer_est[j][0] for j in src},
+                                      {j: self._peer_est[j][1] for j in src if self._peer_est[j][1] is not None})
+                self.counters["reinitialised_from"] = len(src)
+            self._joining = False
+            self.rejoin = False
+        self._prior = self.est.x.copy()
         self.est.start(self._ctx(), y)
         self.r = 0
         self._open_round()

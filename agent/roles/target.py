@@ -30,6 +30,13 @@ class TargetRole(Role):
         self._est: dict[int, np.ndarray] = {}
         self._last_xhat: np.ndarray | None = None
         self._waiting = False
+        self._dead: set[int] = set()
+
+    def on_member(self, role: str, ident: int, alive: bool) -> None:
+        if role == "agent":
+            (self._dead.discard if alive else self._dead.add)(ident)
+            if not alive and self._waiting:
+                self._check()
 
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
@@ -62,7 +69,7 @@ class TargetRole(Role):
         t = self._tick
         if self.source.startswith("node:"):
             return [int(self.source[5:])]
-        return [i for i in range(t.n) if t.alive[i]]
+        return [i for i in range(t.n) if t.alive[i] and i not in self._dead]
 
     def _on_estimate(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Estimate)

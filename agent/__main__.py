@@ -1,0 +1,66 @@
+"""python -m agent ROLE --id I --scenario FILE --connect ENDPOINT [--run NAME] [--design FILE]
+
+Runs one agent-side role (``sensor`` or ``target``) in this process over Zenoh.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+
+from .assemble import build_sensor, build_target
+from .bus import ZenohBus
+from .runner import StopFlag, drive
+from .scenario import ScenarioError, load_scenario
+
+
+def role_deadline(sc, mode: str, role: str) -> float:
+    """Per-wait deadline: lockstep waits long (only dead processes miss it); realtime shares T out
+    between the exchange rounds like a radio slot schedule."""
+    if mode == "lockstep":
+        return sc.run.deadline_s
+    period = sc.run.T / sc.run.speed
+    if role == "sensor":
+        return period / (sc.estimator.rounds + 2)
+    return period / 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m agent")
+    ap.add_argument("role", choices=["sensor", "target"])
+    ap.add_argument("--id", type=int, default=0)
+    ap.add_argument("--scenario", required=True)
+    ap.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    ap.add_argument("--run", default=None, help="run name (key prefix ft/<run>/); default: the scenario's")
+    ap.add_argument("--design", default=None, help="JSON file with the runtime's pre-run design")
+    ap.add_argument("--mode", choices=["lockstep", "realtime"], default=None)
+    ap.add_argument("--rejoin", action="store_true", help="join a running flock (after a restart)")
+    ap.add_argument("--config", default=None, help="Zenoh json5 config file for this process")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        sc = load_scenario(args.scenario)
+    except ScenarioError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    design = json.loads(open(args.design).read()) if args.design else {}
+    mode = args.mode or sc.run.mode
+    stop = StopFlag().install()
+    if args.role == "sensor":
+        if not 0 <= args.id < sc.sensors.n:
+            print(f"error: --id {args.id} is not a sensor of {args.scenario} (0..{sc.sensors.n - 1})", file=sys.stderr)
+            return 2
+        role, name = build_sensor(sc, args.id, design, rejoin=args.rejoin), f"agent/{args.id}"
+    else:
+        role, name = build_target(sc), "target/0"
+    bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)
+    try:
+        return drive(role, bus, name, role_deadline(sc, mode, args.role), stop)
+    finally:
+        bus.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""Drive one role in its own process over a :class:`agent.bus.ZenohBus` (a dora-rs style node loop).
+
+The loop: deliver messages → if the role has waited on the same step longer than its deadline, fire
+``on_deadline`` → give a realtime role its timer → until the role is finished or a stop signal comes.
+Deadlines and restart policies are declared (scenario / launcher), not coded per role.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections.abc import Iterable
+
+from .roles.common import Role
+
+log = logging.getLogger(__name__)
+
+
+def parse_member(name: str) -> tuple[str, int] | None:
+    """'agent/3' → ('agent', 3)."""
+    role, _, ident = name.partition("/")
+    try:
+        return role, int(ident)
+    except ValueError:
+        return None
+
+
+class StopFlag:
+    """Set by SIGTERM/SIGINT; the loop exits cleanly (token withdrawn, session closed)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+
+    def install(self) -> "StopFlag":
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: self.event.set())
+        return self
+
+    @property
+    def set(self) -> bool:
+        return self.event.is_set()
+
+
+def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None = None,
+          expect: Iterable[str] = (), startup_timeout_s: float = 60.0, linger_s: float = 0.5) -> int:
+    """Run ``role`` until it finishes. ``expect``: member names that must be alive before
+    :meth:`Role.start` (the world's start barrier). Returns a process exit code."""
+    stop = stop or StopFlag()
+    members: set[str] = set()
+
+    def on_member(member: str, alive: bool) -> None:
+        (members.add if alive else members.discard)(member)
+        pm = parse_member(member)
+        if pm is not None:
+            role.on_member(pm[0], pm[1], alive)
+
+    role.attach(bus)
+    bus.watch_members(on_member)
+    bus.declare_token(name)
+    expect = set(expect)
+    t_start = time.monotonic()
+    while expect - members:
+        if stop.set:
+            return 0
+        bus.poll(0.05)
+        if time.monotonic() - t_start > startup_timeout_s:
+            log.warning("%s: starting without %s after %.0f s", name, sorted(expect - members), startup_timeout_s)
+            break
+    role.start()
+    last_key, since = None, time.monotonic()
+    while not role.finished and not stop.set:
+        bus.poll(0.01)
+        now = time.monotonic()
+        role.on_timer(now)
+        key = role.wait_key
+        if key != last_key:
+            last_key, since = key, now
+        elif key is not None and now - since > deadline_s:
+            log.info("%s: deadline on %s", name, key)
+            role.on_deadline()
+            since = now
+    # let the last publications leave before the session closes
+    end = time.monotonic() + linger_s
+    while time.monotonic() < end and not stop.set:
+        bus.poll(0.02)
+    return 0

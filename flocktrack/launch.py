@@ -1,0 +1,253 @@
+"""The process-per-agent launcher: embedded Zenoh router, spawn, supervise, shut down.
+
+``Launcher`` opens a Zenoh router *inside this process* (``broker_cfg/local.json5``; no separately
+installed ``zenohd``), spawns one OS process per sensor, the target, the world and the recorder
+(``python -m agent …``, ``python -m topology …``, ``python -m flocktrack.record …``), forwards their
+output with a ``[name]`` prefix, and supervises them with a declared restart policy (dora-rs style):
+
+* ``never``       — a process that dies stays dead (the world treats it as a node with no links);
+* ``on-failure``  — a process that exits non-zero or is killed is restarted, at most ``max_restarts``
+  times, after ``backoff_s`` × 2^(attempt−1) seconds; a restarted sensor rejoins the running flock.
+
+Shutdown (end of run, Ctrl-C, SIGTERM) sends SIGTERM to every child, waits, then SIGKILLs what is
+left; every child also has PR_SET_PDEATHSIG so it dies with the launcher even if the launcher is
+SIGKILLed. No orphan processes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+LOCAL_ROUTER_CFG = ROOT / "broker_cfg" / "local.json5"
+
+
+@dataclass(frozen=True)
+class RestartPolicy:
+    mode: str = "never"          # "never" | "on-failure"
+    max_restarts: int = 3
+    backoff_s: float = 0.5
+
+    def delay(self, attempt: int) -> float:
+        return self.backoff_s * (2 ** max(0, attempt - 1))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _pdeathsig() -> None:  # runs in the child between fork and exec
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def open_router(port: int, config_file: Path = LOCAL_ROUTER_CFG, host: str = "127.0.0.1"):
+    """Open the embedded router in this process, listening on tcp/host:port."""
+    from agent.bus import zenoh_config
+    import zenoh
+
+    zenoh.init_log_from_env_or("error")
+    return zenoh.open(zenoh_config(listen=f"tcp/{host}:{port}", mode="router", config_file=str(config_file)))
+
+
+@dataclass
+class Child:
+    name: str
+    argv: list[str]
+    policy: RestartPolicy
+    log_path: Path
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    exits: list[int] = field(default_factory=list)
+    restart_at: float | None = None
+    rejoin_flag: str | None = None
+    seen_exit: int | None = None
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc else None
+
+
+class Launcher:
+    def __init__(self, run: str, run_dir: Path, n_sensors: int, scenario_file: Path, design_file: Path | None,
+                 mode: str, port: int | None = None, policy: RestartPolicy = RestartPolicy(),
+                 record_to: Path | None = None, meta_file: Path | None = None, quiet: bool = False,
+                 extra_children: list[tuple[str, list[str]]] | None = None):
+        self.run, self.run_dir, self.n = run, Path(run_dir), int(n_sensors)
+        self.scenario_file, self.design_file, self.mode = scenario_file, design_file, mode
+        self.port = port or free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.policy = policy
+        self.record_to, self.meta_file = record_to, meta_file
+        self.quiet = quiet
+        self.children: dict[str, Child] = {}
+        self.router = None
+        self.events: list[dict] = []   # supervisor timeline (spawn / exit / restart), also in run.json
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self.extra_children = extra_children or []
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+
+    # ------------------------------------------------------------------ processes
+    def _common(self) -> list[str]:
+        return ["--connect", self.endpoint, "--run", self.run]
+
+    def plan(self) -> list[Child]:
+        py = sys.executable
+        sc = ["--scenario", str(self.scenario_file)]
+        dz = ["--design", str(self.design_file)] if self.design_file else []
+        mode = ["--mode", self.mode]
+        kids = []
+        if self.record_to is not None:
+            argv = [py, "-m", "flocktrack.record", "--out", str(self.record_to), *self._common()]
+            if self.meta_file:
+                argv += ["--meta", str(self.meta_file)]
+            kids.append(Child("recorder/0", argv, RestartPolicy("never"), self.run_dir / "logs" / "recorder.log"))
+        for name, argv in self.extra_children:
+            kids.append(Child(name, argv, RestartPolicy("never"), self.run_dir / "logs" / f"{name.replace('/', '_')}.log"))
+        for i in range(self.n):
+            kids.append(Child(f"agent/{i}", [py, "-m", "agent", "sensor", "--id", str(i), *sc, *dz, *mode,
+                                             *self._common()], self.policy,
+                              self.run_dir / "logs" / f"agent_{i}.log", rejoin_flag="--rejoin"))
+        kids.append(Child("target/0", [py, "-m", "agent", "target", *sc, *mode, *self._common()],
+                          RestartPolicy("never"), self.run_dir / "logs" / "target.log"))
+        expect = ["--expect", "recorder/0"] if self.record_to is not None else []
+        for name, _ in self.extra_children:
+            expect += ["--expect", name]
+        kids.append(Child("world/0", [py, "-m", "topology", *sc, *mode, *expect, *self._common()],
+                          RestartPolicy("never"), self.run_dir / "logs" / "world.log"))
+        return kids
+
+    def _spawn(self, c: Child, rejoin: bool = False) -> None:
+        argv = list(c.argv) + ([c.rejoin_flag] if rejoin and c.rejoin_flag else [])
+        env = dict(os.environ, PYTHONUNBUFFERED="1", RUST_LOG=os.environ.get("RUST_LOG", "error"))
+        env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        c.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                  env=env, preexec_fn=_pdeathsig, cwd=str(ROOT))
+        self._event("spawn", c.name, pid=c.proc.pid, rejoin=rejoin)
+        threading.Thread(target=self._forward, args=(c, c.proc), daemon=True).start()
+
+    def _forward(self, c: Child, proc: subprocess.Popen) -> None:
+        with open(c.log_path, "ab") as logf:
+            for line in proc.stdout:  # type: ignore[union-attr]
+                logf.write(line)
+                if not self.quiet:
+                    sys.stderr.write(f"[{c.name}] {line.decode(errors='replace')}")
+
+    def _event(self, what: str, name: str, **kw) -> None:
+        with self._lock:
+            self.events.append({"t": time.time(), "event": what, "name": name, **kw})
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        self.router = open_router(self.port)
+        for c in self.plan():
+            self.children[c.name] = c
+            self._spawn(c)
+
+    def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
+        """Fault injection / tests: signal one child."""
+        c = self.children[name]
+        if c.proc and c.proc.poll() is None:
+            c.proc.send_signal(sig)
+            self._event("signal", name, signal=int(sig))
+
+    def supervise_once(self) -> None:
+        now = time.monotonic()
+        for c in self.children.values():
+            if c.proc is None:
+                continue
+            rc = c.proc.poll()
+            if rc is not None and c.seen_exit != c.proc.pid:
+                c.seen_exit = c.proc.pid
+                c.exits.append(rc)
+                self._event("exit", c.name, rc=rc)
+                if rc != 0 and c.policy.mode == "on-failure" and c.restarts < c.policy.max_restarts \
+                        and not self._stopping.is_set():
+                    c.restarts += 1
+                    c.restart_at = now + c.policy.delay(c.restarts)
+            if c.restart_at is not None and now >= c.restart_at and not self._stopping.is_set():
+                c.restart_at = None
+                self._event("restart", c.name, attempt=c.restarts)
+                self._spawn(c, rejoin=True)
+
+    def alive(self, name: str) -> bool:
+        c = self.children.get(name)
+        return bool(c and c.proc and c.proc.poll() is None)
+
+    def wait(self, timeout_s: float | None = None, on_poll=None) -> int:
+        """Supervise until the world exits (then give the rest a moment to finish). Returns the
+        world's exit code (or 124 on timeout, 130 when stopped)."""
+        t0 = time.monotonic()
+        while True:
+            self.supervise_once()
+            if on_poll is not None:
+                on_poll(self)
+            if self._stopping.is_set():
+                return 130
+            w = self.children["world/0"]
+            if w.proc is not None and w.proc.poll() is not None:
+                rc = w.proc.returncode
+                end = time.monotonic() + 20.0
+                while time.monotonic() < end and any(
+                        c.proc and c.proc.poll() is None for n, c in self.children.items()):
+                    self.supervise_once()
+                    time.sleep(0.05)
+                self.supervise_once()
+                return rc
+            if timeout_s is not None and time.monotonic() - t0 > timeout_s:
+                return 124
+            time.sleep(0.05)
+
+    def request_stop(self) -> None:
+        self._stopping.set()
+
+    def shutdown(self, grace_s: float = 5.0) -> None:
+        """SIGTERM every child, wait, SIGKILL what is left, close the router."""
+        self._stopping.set()
+        procs = [c.proc for c in self.children.values() if c.proc and c.proc.poll() is None]
+        # the recorder last, so it records the others' goodbyes
+        for p in procs:
+            if p is not self.children.get("recorder/0", Child("", [], RestartPolicy(), Path())).proc:
+                p.send_signal(signal.SIGTERM)
+        end = time.monotonic() + grace_s
+        for p in procs:
+            try:
+                p.wait(max(0.0, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+        rec = self.children.get("recorder/0")
+        if rec and rec.proc and rec.proc.poll() is None:
+            rec.proc.send_signal(signal.SIGTERM)
+            try:
+                rec.proc.wait(grace_s)
+            except subprocess.TimeoutExpired:
+                pass
+        for c in self.children.values():
+            if c.proc and c.proc.poll() is None:
+                c.proc.kill()
+                c.proc.wait()
+                self._event("killed", c.name)
+        if self.router is not None:
+            self.router.close()
+            self.router = None
+
+    def pids(self) -> list[int]:
+        return [c.proc.pid for c in self.children.values() if c.proc]
+
+    def write_events(self, path: Path) -> None:
+        path.write_text(json.dumps(self.events, indent=1))

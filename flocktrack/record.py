@@ -1,0 +1,216 @@
+"""Recordings: every message of a run in an MCAP file, replay, and re-scoring.
+
+* :class:`McapRecorder` writes each message as JSON on a channel named by its relative key
+  (``world/tick``, ``agent/3/xchg``, …) with a JSON Schema per message type, so Foxglove opens the file.
+  Chunks are small and the file is unbuffered, so a crash loses at most the last chunk; the
+  scenario (TOML text) and the pre-run design are stored as metadata, so a recording is self-contained.
+* ``python -m flocktrack.record --run R --connect EP --out FILE`` is the recorder *role*: a read-only
+  subscriber to ``ft/<run>/**`` that stops at ``world/end`` (or SIGTERM) and finishes the file.
+* :func:`read_recording` yields the messages back (recovering what a truncated file still holds);
+  :func:`metrics_from_recording` recomputes ``summary.json`` from a recording alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from agent import wire
+
+log = logging.getLogger(__name__)
+
+CHUNK_BYTES = 64 * 1024
+
+
+class McapRecorder:
+    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "wb")
+        self._w = Writer(self._f, chunk_size=CHUNK_BYTES, compression=CompressionType.NONE)
+        self._w.start(profile="flocktrack", library="flocktrack")
+        self._schemas = {name: self._w.register_schema(
+            name=f"flocktrack.{cls.__name__}", encoding="jsonschema",
+            data=json.dumps(wire.json_schema(cls)).encode()) for name, cls in wire.MESSAGE_TYPES.items()}
+        self._channels: dict[str, int] = {}
+        self.seq = 0
+        self.counts: Counter = Counter()
+        self.dropped: Counter = Counter()
+        self._finished = False
+        if metadata:
+            self._w.add_metadata("flocktrack", {k: str(v) for k, v in metadata.items()})
+
+    def write_raw(self, key: str, data: bytes, t_ns: int | None = None) -> None:
+        """Validate and record one wire message (invalid ones are counted, not recorded)."""
+        try:
+            msg = wire.decode(key, data)
+        except wire.WireError as exc:
+            self.dropped[exc.reason] += 1
+            return
+        self.write(key, msg, t_ns)
+
+    def write(self, key: str, msg: wire.Message, t_ns: int | None = None) -> None:
+        ch = self._channels.get(key)
+        if ch is None:
+            ch = self._channels[key] = self._w.register_channel(
+                topic=key, message_encoding="json", schema_id=self._schemas[msg.TYPE])
+        t = time.time_ns() if t_ns is None else t_ns
+        self._w.add_message(ch, log_time=t, data=json.dumps(msg.to_json()).encode(), publish_time=t,
+                            sequence=self.seq)
+        self.seq += 1
+        self.counts[key] += 1
+        self._f.flush()  # a completed chunk reaches the OS at once: a crash loses only the open chunk
+
+    def finish(self) -> None:
+        if self._finished:
+            return
+        self._finished = True
+        self._w.finish()
+        self._f.close()
+
+
+@dataclass
+class Recording:
+    metadata: dict[str, str]
+    messages: list[tuple[str, wire.Message, int]]  # (key, message, log_time ns) in sequence order
+    complete: bool
+    rejected: int = 0
+
+
+def read_recording(path: str | Path) -> Recording:
+    """All messages of a recording in sequence order. A truncated file (crash) yields what its
+    complete chunks hold, with ``complete=False``."""
+    from mcap.reader import make_reader
+    from mcap.stream_reader import StreamReader
+    from mcap.records import Channel, Chunk, Message, Metadata
+
+    path = Path(path)
+    meta: dict[str, str] = {}
+    msgs: list[tuple[int, str, wire.Message, int]] = []
+    rejected = 0
+    complete = True
+    try:
+        with open(path, "rb") as f:
+            r = make_reader(f)
+            for m in r.iter_metadata():
+                if m.name == "flocktrack":
+                    meta = dict(m.metadata)
+            for _schema, channel, message in r.iter_messages(log_time_order=False):
+                try:
+                    msgs.append((message.sequence, channel.topic,
+                                 wire.from_json(json.loads(message.data)), message.log_time))
+                except (wire.WireError, ValueError):
+                    rejected += 1
+    except Exception:  # truncated / no summary: stream through what is there
+        complete = False
+        msgs, rejected = [], 0
+        channels: dict[int, str] = {}
+        from mcap.data_stream import ReadDataStream  # noqa: F401  (keeps the mcap import surface explicit)
+
+        with open(path, "rb") as f:
+            try:
+                for rec in StreamReader(f, skip_magic=False).records:
+                    if isinstance(rec, Metadata) and rec.name == "flocktrack":
+                        meta = dict(rec.metadata)
+                    elif isinstance(rec, Channel):
+                        channels[rec.id] = rec.topic
+                    elif isinstance(rec, Chunk):
+                        for sub in _chunk_records(rec):
+                            if isinstance(sub, Channel):
+                                channels[sub.id] = sub.topic
+                            elif isinstance(sub, Message):
+                                _append(msgs, channels, sub)
+                    elif isinstance(rec, Message):
+                        _append(msgs, channels, rec)
+            except Exception:
+                pass
+    msgs.sort(key=lambda t: t[0])
+    return Recording(meta, [(k, m, t) for _, k, m, t in msgs], complete, rejected)
+
+
+def _chunk_records(chunk):
+    from mcap.reader import breakup_chunk
+
+    return breakup_chunk(chunk, validate_crc=False)
+
+
+def _append(msgs, channels, rec) -> None:
+    try:
+        msgs.append((rec.sequence, channels[rec.channel_id], wire.from_json(json.loads(rec.data)), rec.log_time))
+    except (KeyError, wire.WireError, ValueError):
+        pass
+
+
+def metrics_from_recording(path: str | Path, out_dir: str | Path | None = None) -> dict:
+    """Recompute ``summary.json`` (and ``metrics.csv``) from a recording alone."""
+    import tomllib
+
+    from agent.scenario import parse_scenario
+
+    from .metrics import MetricsCollector, summary_identity
+
+    rec = read_recording(path)
+    if "scenario" not in rec.metadata:
+        raise ValueError(f"{path}: not a flocktrack recording (no scenario metadata)")
+    sc = parse_scenario(tomllib.loads(rec.metadata["scenario"]), rec.metadata.get("scenario_path", str(path)))
+    design = json.loads(rec.metadata.get("design", "{}"))
+    m = MetricsCollector(sc.sensors.n, sc.run.ticks, sc.pos_dims, sc.run.burn_in, design.get("tmsee_lower"))
+    for key, msg, _t in rec.messages:
+        m.ingest(key, msg)
+    extra = summary_identity(sc)
+    if out_dir is not None:
+        return m.write(out_dir, extra)
+    return m.summary(extra)
+
+
+# ============================================================================ the recorder role
+
+def main(argv: list[str] | None = None) -> int:
+    from agent.bus import ZenohBus
+    from agent.runner import StopFlag
+
+    ap = argparse.ArgumentParser(prog="python -m flocktrack.record")
+    ap.add_argument("--run", required=True)
+    ap.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--meta", default=None, help="JSON file of metadata (scenario text, design)")
+    ap.add_argument("--linger", type=float, default=0.5, help="seconds to keep recording after world/end")
+    ap.add_argument("--config", default=None)
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    meta = json.loads(Path(args.meta).read_text()) if args.meta else {}
+    stop = StopFlag().install()
+    rec = McapRecorder(args.out, meta)
+    bus = ZenohBus(args.run, connect=args.connect, config_file=args.config)
+    end_at: list[float] = []
+
+    def on_raw(key: str, data: bytes) -> None:
+        rec.write_raw(key, data)
+        if key == "world/end" and not end_at:
+            end_at.append(time.monotonic() + args.linger)
+
+    try:
+        bus.subscribe_raw("**", on_raw)
+        bus.declare_token("recorder/0")
+        while not stop.set and not (end_at and time.monotonic() > end_at[0]):
+            bus.poll(0.05)
+        bus.poll(0)  # whatever is already queued
+    finally:
+        rec.finish()
+        bus.close()
+    log.info("recorded %d messages on %d keys to %s (dropped %s)", rec.seq, len(rec.counts), args.out,
+             dict(rec.dropped))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,177 @@
+"""Run a scenario to an output directory, in-process or process-per-agent over Zenoh.
+
+Both write the same files: ``scenario.toml`` (the resolved scenario, overrides applied),
+``design.json`` (pre-run design), ``summary.json`` + ``metrics.csv`` (metrics only; identical across
+transports in lockstep), ``run.json`` (transport, timing, bus counters, supervisor events) and — always
+over Zenoh, with ``record=True`` in-process — ``recording.mcap``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from agent.scenario import Scenario
+
+from .build import design as make_design
+from .launch import Launcher, RestartPolicy
+from .metrics import summary_identity
+from .record import McapRecorder, metrics_from_recording, read_recording
+
+
+class Progress:
+    """A rich progress bar on a terminal, periodic plain lines otherwise (never silent)."""
+
+    def __init__(self, total: int, label: str = "ticks"):
+        self.total, self.label = total, label
+        self._bar = None
+        self._step = max(1, total // 10)
+        self._last = -1
+        if sys.stderr.isatty():
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress as RP, TextColumn, TimeRemainingColumn
+
+            self._bar = RP(TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                           transient=True)
+            self._task = self._bar.add_task(label, total=total)
+            self._bar.start()
+
+    def update(self, k: int, _n: int | None = None) -> None:
+        if self._bar is not None:
+            self._bar.update(self._task, completed=k)
+        elif k // self._step != self._last // self._step or k == self.total:
+            print(f"{self.label} {k}/{self.total}", file=sys.stderr, flush=True)
+        self._last = k
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+
+
+def _write_inputs(sc: Scenario, data: dict, out: Path) -> tuple[Path, Path, dict, Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    scen_file = out / "scenario.toml"
+    scen_text = tomli_w.dumps(data)
+    scen_file.write_text(scen_text)
+    dsg = make_design(sc)
+    design_file = out / "design.json"
+    design_file.write_text(json.dumps(dsg))
+    meta = {"scenario": scen_text, "design": json.dumps(dsg), "scenario_path": sc.source}
+    meta_file = out / "meta.json"
+    meta_file.write_text(json.dumps(meta))
+    return scen_file, design_file, dsg, meta_file
+
+
+def run_inproc_to_dir(sc: Scenario, data: dict, out: Path, record: bool = False,
+                      show_progress: bool = False) -> tuple[dict, dict]:
+    from agent.bus import LocalBus
+
+    from .inproc import run_inproc
+
+    _, _, dsg, meta_file = _write_inputs(sc, data, out)
+    bus = LocalBus()
+    rec = None
+    if record:
+        rec = McapRecorder(out / "recording.mcap", json.loads(meta_file.read_text()))
+        bus.taps.append(rec.write_raw)
+    prog = Progress(sc.run.ticks) if show_progress else None
+    t0 = time.perf_counter()
+    try:
+        metrics, roles, bus = run_inproc(sc, progress=prog.update if prog else None, bus=bus)
+    finally:
+        if prog:
+            prog.close()
+        if rec:
+            rec.finish()
+    wall = time.perf_counter() - t0
+    summary = metrics.write(out, summary_identity(sc))
+    info = {"transport": "inproc", "wall_s": wall, "ticks_per_s": sc.run.ticks / wall, "bus": bus.stats.as_dict(),
+            "sensor_counters": [dict(sorted(s.counters.items())) for s in roles.sensors],
+            "world": roles.world.stats}
+    (out / "run.json").write_text(json.dumps(info, indent=2))
+    return summary, info
+
+
+def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = None, restart: str = "never",
+                     max_restarts: int = 3, quiet: bool = False, on_poll=None,
+                     timeout_s: float | None = None) -> tuple[dict, dict]:
+    """Process per agent over an embedded router; metrics are recomputed from the recording."""
+    scen_file, design_file, dsg, meta_file = _write_inputs(sc, data, out)
+    run = f"{sc.run.name}-{uuid.uuid4().hex[:8]}"
+    launcher = Launcher(run, out, sc.sensors.n, scen_file, design_file, sc.run.mode, port=port,
+                        policy=RestartPolicy(restart, max_restarts), record_to=out / "recording.mcap",
+                        meta_file=meta_file, quiet=quiet)
+    stop_signals = {}
+
+    def on_signal(signum, _frame):
+        launcher.request_stop()
+
+    for s in (signal.SIGINT, signal.SIGTERM):
+        stop_signals[s] = signal.signal(s, on_signal)
+    t0 = time.perf_counter()
+    rc: int | None = None
+    try:
+        launcher.start()
+        rc = launcher.wait(timeout_s=timeout_s, on_poll=on_poll)
+    finally:
+        launcher.shutdown()
+        for s, h in stop_signals.items():
+            signal.signal(s, h)
+        launcher.write_events(out / "events.json")
+    wall = time.perf_counter() - t0
+    summary = metrics_from_recording(out / "recording.mcap", out)
+    rec = read_recording(out / "recording.mcap")
+    info = {"transport": "zenoh", "run": run, "rc": rc, "wall_s": wall, "ticks_per_s": sc.run.ticks / wall,
+            "router": launcher.endpoint, "recorded_messages": len(rec.messages), "recording_complete": rec.complete,
+            "restarts": {n: c.restarts for n, c in launcher.children.items() if c.restarts},
+            "exits": {n: c.exits for n, c in launcher.children.items()}}
+    (out / "run.json").write_text(json.dumps(info, indent=2))
+    return summary, info
+
+
+def replay(path: str | Path, connect: str | None = None, speed: float = 1.0, port: int = 7447,
+           run: str | None = None) -> int:
+    """Re-publish a recording's messages (original pacing × 1/speed; speed 0 = as fast as possible)."""
+    from agent.bus import ZenohBus
+
+    from .launch import open_router
+
+    rec = read_recording(path)
+    router = None
+    if connect is None:
+        router = open_router(port)
+        connect = f"tcp/127.0.0.1:{port}"
+    name = run or json.loads(json.dumps({})) or None
+    if name is None:
+        import tomllib
+
+        name = tomllib.loads(rec.metadata["scenario"])["run"].get("name", "run") if "scenario" in rec.metadata else "replay"
+    bus = ZenohBus(name, connect=connect)
+    n = 0
+    try:
+        t_first = rec.messages[0][2] if rec.messages else 0
+        w0 = time.monotonic()
+        for key, msg, t in rec.messages:
+            if speed > 0:
+                due = w0 + (t - t_first) / 1e9 / speed
+                while time.monotonic() < due:
+                    time.sleep(min(0.01, due - time.monotonic()))
+            bus.publish(key, msg)
+            n += 1
+        time.sleep(0.2)
+    finally:
+        bus.close()
+        if router is not None:
+            router.close()
+    return n
+
+
+__all__ = ["run_inproc_to_dir", "run_zenoh_to_dir", "replay", "Progress"]
+_ = os, Any
