@@ -18,11 +18,11 @@ SCEN = Path(__file__).resolve().parents[1] / "scenarios"
 
 def test_same_scenario_and_seed_give_identical_summary(tmp_path):
     for d in ("a", "b"):
-        assert main(["run", str(SCEN / "gu_hu_intelligent.toml"), "--ticks", "120", "--out", str(tmp_path / d)]) == 0
+        assert main(["run", str(SCEN / "gu_hu_intelligent.toml"), "--transport", "inproc", "--ticks", "120", "--out", str(tmp_path / d)]) == 0
     a = (tmp_path / "a" / "summary.json").read_bytes()
     assert a == (tmp_path / "b" / "summary.json").read_bytes()
     assert (tmp_path / "a" / "metrics.csv").read_bytes() == (tmp_path / "b" / "metrics.csv").read_bytes()
-    main(["run", str(SCEN / "gu_hu_intelligent.toml"), "--ticks", "120", "--seed", "7", "--out", str(tmp_path / "c")])
+    main(["run", str(SCEN / "gu_hu_intelligent.toml"), "--transport", "inproc", "--ticks", "120", "--seed", "7", "--out", str(tmp_path / "c")])
     assert (tmp_path / "c" / "summary.json").read_bytes() != a
 
 
@@ -65,8 +65,8 @@ def test_intelligent_target_kalman_diverges_minimax_bounded_and_flock_holds(tmp_
     """Gu & Hu Figs. 6–8: against the intelligent target the distributed Kalman error grows without bound,
     the distributed minimax error stays bounded; the flock stays connected without collisions."""
     base = str(SCEN / "gu_hu_intelligent.toml")
-    assert main(["run", base, "--seed", str(seed), "--out", str(tmp_path / "mm")]) == 0
-    assert main(["run", base, "--seed", str(seed), "--estimator", "kalman", "--out", str(tmp_path / "kf")]) == 0
+    assert main(["run", base, "--transport", "inproc", "--seed", str(seed), "--out", str(tmp_path / "mm")]) == 0
+    assert main(["run", base, "--transport", "inproc", "--seed", str(seed), "--estimator", "kalman", "--out", str(tmp_path / "kf")]) == 0
     import csv
 
     def rmse(d):
@@ -81,12 +81,13 @@ def test_intelligent_target_kalman_diverges_minimax_bounded_and_flock_holds(tmp_
     s = json.loads((tmp_path / "mm" / "summary.json").read_text())
     assert s["connected_fraction"] == 1.0 and s["lambda2_min"] > 0
     assert s["min_inter_agent_distance"] > 2.0
-    assert s["bus"]["dropped"] == {} and s["bus"]["handler_errors"] == 0
+    info = json.loads((tmp_path / "mm" / "run.json").read_text())
+    assert info["bus"]["dropped"] == {} and info["bus"]["handler_errors"] == 0
 
 
 def test_normal_target_both_filters_track(tmp_path):
     for est in ("minimax", "kalman"):
-        assert main(["run", str(SCEN / "gu_hu_normal.toml"), "--ticks", "400", "--estimator", est,
+        assert main(["run", str(SCEN / "gu_hu_normal.toml"), "--transport", "inproc", "--ticks", "400", "--estimator", est,
                      "--out", str(tmp_path / est)]) == 0
         s = json.loads((tmp_path / est / "summary.json").read_text())
         assert s["network_rmse"] < 0.3, (est, s["network_rmse"])
