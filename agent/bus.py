@@ -45,12 +45,14 @@ class BusStats:
     """Message counters of one bus endpoint."""
 
     sent: int = 0
+    sent_by_key: Counter = field(default_factory=Counter)
     received: int = 0
     dropped: Counter = field(default_factory=Counter)
     handler_errors: int = 0
 
     def as_dict(self) -> dict:
-        return {"sent": self.sent, "received": self.received, "dropped": dict(self.dropped),
+        return {"sent": self.sent, "sent_by_key": dict(sorted(self.sent_by_key.items())),
+                "received": self.received, "dropped": dict(self.dropped),
                 "handler_errors": self.handler_errors}
 
 
@@ -104,6 +106,7 @@ class LocalBus:
     def publish_raw(self, key: str, data: bytes) -> None:
         """Publish already-encoded bytes (used by replay and by hostile-input tests)."""
         self.stats.sent += 1
+        self.stats.sent_by_key[key] += 1
         self._queue.append((key, data))
 
     def subscribe(self, pattern: str, handler: Handler) -> None:
@@ -195,6 +198,7 @@ class ZenohBus:
                 self.prefix + key, congestion_control=z.CongestionControl.BLOCK)
         pub.put(data)
         self.stats.sent += 1
+        self.stats.sent_by_key[key] += 1
 
     def subscribe(self, pattern: str, handler: Handler) -> None:
         n = len(self.prefix)

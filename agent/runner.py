@@ -69,6 +69,20 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
             log.warning("%s: starting without %s after %.0f s", name, sorted(expect - members), startup_timeout_s)
             break
     role.start()
+    try:
+        _loop(role, bus, name, deadline_s, stop)
+    except Exception:
+        write_stats(name, bus, role)
+        raise
+    # let the last publications leave before the session closes
+    end = time.monotonic() + linger_s
+    while time.monotonic() < end and not stop.set:
+        bus.poll(0.02)
+    write_stats(name, bus, role)
+    return 0
+
+
+def _loop(role: Role, bus, name: str, deadline_s: float, stop: StopFlag) -> None:
     last_key, since = None, time.monotonic()
     while not role.finished and not stop.set:
         bus.poll(0.01)
@@ -81,8 +95,21 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
             log.info("%s: deadline on %s", name, key)
             role.on_deadline()
             since = now
-    # let the last publications leave before the session closes
-    end = time.monotonic() + linger_s
-    while time.monotonic() < end and not stop.set:
-        bus.poll(0.02)
-    return 0
+
+
+def write_stats(name: str, bus, role: Role | None = None) -> None:
+    """Dump this process's bus counters to ``$FLOCKTRACK_STATS_DIR/<name>.json`` (set by the launcher)."""
+    import json
+    import os
+    from pathlib import Path
+
+    d = os.environ.get("FLOCKTRACK_STATS_DIR")
+    if not d:
+        return
+    out = bus.stats.as_dict()
+    counters = getattr(role, "counters", None) or getattr(role, "stats", None)
+    if counters:
+        out["role"] = dict(counters)
+    p = Path(d) / (name.replace("/", "_") + ".json")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(out, indent=1, sort_keys=True))

@@ -135,6 +135,7 @@ class Launcher:
     def _spawn(self, c: Child, rejoin: bool = False) -> None:
         argv = list(c.argv) + ([c.rejoin_flag] if rejoin and c.rejoin_flag else [])
         env = dict(os.environ, PYTHONUNBUFFERED="1", RUST_LOG=os.environ.get("RUST_LOG", "error"))
+        env["FLOCKTRACK_STATS_DIR"] = str(self.run_dir / "stats")
         env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         c.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                   env=env, preexec_fn=_pdeathsig, cwd=str(ROOT))

@@ -209,6 +209,13 @@ def main(argv: list[str] | None = None) -> int:
         bus.close()
     log.info("recorded %d messages on %d keys to %s (dropped %s)", rec.seq, len(rec.counts), args.out,
              dict(rec.dropped))
+    import os
+
+    if os.environ.get("FLOCKTRACK_STATS_DIR"):
+        p = Path(os.environ["FLOCKTRACK_STATS_DIR"]) / "recorder_0.json"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(json.dumps({"recorded_by_key": dict(sorted(rec.counts.items())), "dropped": dict(rec.dropped)},
+                                indent=1))
     return 0
 
 
