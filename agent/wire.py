@@ -14,6 +14,7 @@ key                        type          published by
 ``agent/<i>/state``        State         sensor i (position/velocity after tick k)
 ``fusion/estimate``        Estimate      the fusion solver
 ``world/end``              End           the world (the run is over)
+``world/event``            Control       the world (a control/fault applied, k = tick of effect)
 ``control/<verb>``         Control       dashboard / CLI (faults, pause, ...)
 =========================  ============  =======================================================
 
@@ -343,6 +344,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 _KEY_TYPES = {
     ("world", "tick"): Tick,
     ("world", "end"): End,
+    ("world", "event"): Control,
     ("target", "truth"): Truth,
     ("target", "state"): State,
     ("agent", "meas"): Meas,

@@ -69,8 +69,12 @@ def cmd_run(args) -> int:
     if args.transport == "inproc":
         summary, info = run_inproc_to_dir(sc, data, out, record=args.record, show_progress=True)
     else:
+        if args.dashboard:
+            print(f"dashboard: http://localhost:{args.dashboard_port}", file=sys.stderr)
         summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
-                                         max_restarts=args.max_restarts, quiet=args.quiet)
+                                         max_restarts=args.max_restarts, quiet=args.quiet,
+                                         dashboard_port=args.dashboard_port if args.dashboard else None,
+                                         keep_dashboard=args.dashboard and not args.no_linger)
         if info.get("rc") not in (0, None):
             print(f"error: run ended with code {info['rc']}; see {out}/logs/", file=sys.stderr)
             return 1
@@ -94,8 +98,10 @@ def cmd_metrics(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from .run import replay
+    from .run import replay, replay_dashboard
 
+    if args.dashboard:
+        return replay_dashboard(args.recording, args.dashboard_port)
     n = replay(args.recording, connect=args.connect, speed=args.speed, port=args.port)
     print(f"replayed {n} messages from {args.recording}")
     return 0
@@ -117,6 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--max-restarts", type=int, default=3)
     r.add_argument("--record", action="store_true", help="inproc: also write DIR/recording.mcap (zenoh always records)")
     r.add_argument("--quiet", action="store_true", help="do not forward the processes' logs")
+    r.add_argument("--dashboard", action="store_true", help="zenoh: start the live Viser dashboard")
+    r.add_argument("--dashboard-port", type=int, default=8080)
+    r.add_argument("--no-linger", action="store_true", help="close the dashboard when the run ends")
     r.add_argument("--ticks", type=int)
     r.add_argument("--seed", type=int)
     r.add_argument("--estimator", choices=["minimax", "kalman", "hinf_switching"])
@@ -133,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     rp.add_argument("--connect", help="router endpoint (default: open an embedded router)")
     rp.add_argument("--port", type=int, default=7447)
     rp.add_argument("--speed", type=float, default=1.0, help="realtime factor (0 = as fast as possible)")
+    rp.add_argument("--dashboard", action="store_true", help="show the recording in the dashboard (time slider)")
+    rp.add_argument("--dashboard-port", type=int, default=8080)
     rp.set_defaults(fn=cmd_replay)
     args = ap.parse_args(argv)
     try:

@@ -76,6 +76,7 @@ class Child:
     restart_at: float | None = None
     rejoin_flag: str | None = None
     seen_exit: int | None = None
+    hold: bool = False  # killed on request (control/kill): stays down until control/restart
 
     @property
     def pid(self) -> int | None:
@@ -86,7 +87,7 @@ class Launcher:
     def __init__(self, run: str, run_dir: Path, n_sensors: int, scenario_file: Path, design_file: Path | None,
                  mode: str, port: int | None = None, policy: RestartPolicy = RestartPolicy(),
                  record_to: Path | None = None, meta_file: Path | None = None, quiet: bool = False,
-                 extra_children: list[tuple[str, list[str]]] | None = None):
+                 extra_children: list[tuple[str, list[str]]] | None = None, dashboard_port: int | None = None):
         self.run, self.run_dir, self.n = run, Path(run_dir), int(n_sensors)
         self.scenario_file, self.design_file, self.mode = scenario_file, design_file, mode
         self.port = port or free_port()
@@ -100,6 +101,8 @@ class Launcher:
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self.extra_children = extra_children or []
+        self.dashboard_port = dashboard_port
+        self.ctl_bus = None
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------ processes
@@ -119,6 +122,10 @@ class Launcher:
             kids.append(Child("recorder/0", argv, RestartPolicy("never"), self.run_dir / "logs" / "recorder.log"))
         for name, argv in self.extra_children:
             kids.append(Child(name, argv, RestartPolicy("never"), self.run_dir / "logs" / f"{name.replace('/', '_')}.log"))
+        if self.dashboard_port is not None:
+            kids.append(Child("dashboard/0", [py, "-m", "dashboards", "--port", str(self.dashboard_port), *sc,
+                                              *self._common()], RestartPolicy("on-failure", 3),
+                              self.run_dir / "logs" / "dashboard.log"))
         for i in range(self.n):
             kids.append(Child(f"agent/{i}", [py, "-m", "agent", "sensor", "--id", str(i), *sc, *dz, *mode,
                                              *self._common()], self.policy,
@@ -156,9 +163,32 @@ class Launcher:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         self.router = open_router(self.port)
+        from agent.bus import ZenohBus
+
+        self.ctl_bus = ZenohBus(self.run, connect=self.endpoint)
+        self.ctl_bus.subscribe("control/kill", self._on_control)
+        self.ctl_bus.subscribe("control/restart", self._on_control)
         for c in self.plan():
             self.children[c.name] = c
             self._spawn(c)
+
+    def _on_control(self, key: str, msg) -> None:
+        """control/kill {agent} SIGKILLs a sensor and holds it down; control/restart {agent} brings it
+        back (rejoining the flock)."""
+        i = msg.args.get("agent")
+        name = f"agent/{int(i)}" if isinstance(i, (int, float)) else None
+        c = self.children.get(name) if name else None
+        if c is None:
+            return
+        if msg.verb == "kill":
+            c.hold = True
+            c.restart_at = None
+            self.kill(name, signal.SIGKILL)
+        elif msg.verb == "restart" and not self.alive(name) and not self._stopping.is_set():
+            c.hold = False
+            c.restart_at = None
+            self._event("restart", name, attempt=c.restarts, requested=True)
+            self._spawn(c, rejoin=True)
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         """Fault injection / tests: signal one child."""
@@ -168,6 +198,8 @@ class Launcher:
             self._event("signal", name, signal=int(sig))
 
     def supervise_once(self) -> None:
+        if self.ctl_bus is not None:
+            self.ctl_bus.poll(0)
         now = time.monotonic()
         for c in self.children.values():
             if c.proc is None:
@@ -178,7 +210,7 @@ class Launcher:
                 c.exits.append(rc)
                 self._event("exit", c.name, rc=rc)
                 if rc != 0 and c.policy.mode == "on-failure" and c.restarts < c.policy.max_restarts \
-                        and not self._stopping.is_set():
+                        and not self._stopping.is_set() and not c.hold:
                     c.restarts += 1
                     c.restart_at = now + c.policy.delay(c.restarts)
             if c.restart_at is not None and now >= c.restart_at and not self._stopping.is_set():
@@ -205,7 +237,7 @@ class Launcher:
                 rc = w.proc.returncode
                 end = time.monotonic() + 20.0
                 while time.monotonic() < end and any(
-                        c.proc and c.proc.poll() is None for n, c in self.children.items()):
+                        c.proc and c.proc.poll() is None for n, c in self.children.items() if n != "dashboard/0"):
                     self.supervise_once()
                     time.sleep(0.05)
                 self.supervise_once()
@@ -243,6 +275,9 @@ class Launcher:
                 c.proc.kill()
                 c.proc.wait()
                 self._event("killed", c.name)
+        if self.ctl_bus is not None:
+            self.ctl_bus.close()
+            self.ctl_bus = None
         if self.router is not None:
             self.router.close()
             self.router = None

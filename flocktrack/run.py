@@ -101,13 +101,14 @@ def run_inproc_to_dir(sc: Scenario, data: dict, out: Path, record: bool = False,
 
 def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = None, restart: str = "never",
                      max_restarts: int = 3, quiet: bool = False, on_poll=None,
-                     timeout_s: float | None = None) -> tuple[dict, dict]:
+                     timeout_s: float | None = None, dashboard_port: int | None = None,
+                     keep_dashboard: bool = False) -> tuple[dict, dict]:
     """Process per agent over an embedded router; metrics are recomputed from the recording."""
     scen_file, design_file, dsg, meta_file = _write_inputs(sc, data, out)
     run = f"{sc.run.name}-{uuid.uuid4().hex[:8]}"
     launcher = Launcher(run, out, sc.sensors.n, scen_file, design_file, sc.run.mode, port=port,
                         policy=RestartPolicy(restart, max_restarts), record_to=out / "recording.mcap",
-                        meta_file=meta_file, quiet=quiet)
+                        meta_file=meta_file, quiet=quiet, dashboard_port=dashboard_port)
     stop_signals = {}
 
     def on_signal(signum, _frame):
@@ -120,6 +121,11 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     try:
         launcher.start()
         rc = launcher.wait(timeout_s=timeout_s, on_poll=on_poll)
+        if keep_dashboard and dashboard_port is not None and rc == 0 and launcher.alive("dashboard/0"):
+            print(f"run finished; the dashboard stays up at http://localhost:{dashboard_port} — Ctrl-C to quit",
+                  file=sys.stderr)
+            while not launcher._stopping.is_set() and launcher.alive("dashboard/0"):
+                time.sleep(0.2)
     finally:
         launcher.shutdown()
         for s, h in stop_signals.items():
@@ -134,6 +140,22 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
             "exits": {n: c.exits for n, c in launcher.children.items()}}
     (out / "run.json").write_text(json.dumps(info, indent=2))
     return summary, info
+
+
+def replay_dashboard(path: str | Path, port: int = 8080) -> int:
+    """Serve a recording in the dashboard (time slider) until Ctrl-C."""
+    import subprocess
+
+    from .launch import ROOT, _pdeathsig
+
+    proc = subprocess.Popen([sys.executable, "-m", "dashboards", "--recording", str(path), "--port", str(port)],
+                            cwd=str(ROOT), preexec_fn=_pdeathsig)
+    print(f"dashboard on http://localhost:{port} — Ctrl-C to quit", file=sys.stderr)
+    try:
+        return proc.wait()
+    except KeyboardInterrupt:
+        proc.terminate()
+        return proc.wait()
 
 
 def replay(path: str | Path, connect: str | None = None, speed: float = 1.0, port: int = 7447,

@@ -17,7 +17,8 @@ import numpy as np
 
 from agent.bus import Bus
 from agent.roles.common import Role
-from agent.wire import End, Message, State, Tick
+from agent.seeding import rng_for
+from agent.wire import Control, End, Message, State, Tick
 
 from agent.scenario import Scenario
 
@@ -41,7 +42,7 @@ def build_world(sc: Scenario, **kw) -> "WorldRole":
     P0 = sc.initial_positions()
     return WorldRole(sc.sensors.n, sc.run.ticks, sc.run.T, P0, x0[: min(sc.pos_dims, P0.shape[1])],
                      schedule=schedule_of(sc), radius=tp.range, sensing_range=sc.sensors.sensing_range,
-                     beta=sc.sensors.beta, speed=sc.run.speed, **kw)
+                     beta=sc.sensors.beta, speed=sc.run.speed, seed=sc.run.seed, **kw)
 
 
 class WorldRole(Role):
@@ -49,13 +50,23 @@ class WorldRole(Role):
 
     def __init__(self, n: int, ticks: int, T: float, positions0: np.ndarray, target_pos0: np.ndarray,
                  schedule: PeriodicSchedule | None = None, radius: float = np.inf,
-                 sensing_range: float = np.inf, beta: float = 1.0, realtime: bool = False, speed: float = 1.0):
+                 sensing_range: float = np.inf, beta: float = 1.0, realtime: bool = False, speed: float = 1.0,
+                 seed: int = 0):
         super().__init__(ticks)
         self.realtime = bool(realtime)
         self.period = float(T) / float(speed)  # wall-clock seconds per tick in realtime
         self._t0: float | None = None
         self._expected: set[int] = set()
-        self.stats = {"late_states": 0, "missing_states": 0}
+        self.stats = {"late_states": 0, "missing_states": 0, "controls": 0}
+        # control plane (DESIGN.md control/**): pause/step/speed and link faults, applied per tick
+        self.paused = False
+        self._step_budget: int | None = None
+        self._pause_started: float | None = None
+        self._hold = False                      # lockstep: tick complete but paused
+        self.dropped_links: set[tuple[int, int]] = set()
+        self.link_loss = 0.0
+        self.groups: list[int] | None = None
+        self._fault_rng = rng_for(seed, "world", 0, "faults")
         self.n, self.T = int(n), float(T)
         self.schedule = schedule
         self.radius = float(radius)
@@ -73,6 +84,83 @@ class WorldRole(Role):
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("agent/*/state", self._on_state)
         bus.subscribe("target/state", self._on_target_state)
+        bus.subscribe("control/**", self._on_control)
+
+    # ------------------------------------------------------------------ control plane
+    def _on_control(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Control)
+        if self.apply_control(msg.verb, msg.args):
+            self.stats["controls"] += 1
+            k_eff = self.k + 1 if self._open else self.k
+            self.publish("world/event", Control(k=k_eff, verb=msg.verb, args=dict(msg.args)))
+
+    def apply_control(self, verb: str, args: dict) -> bool:
+        """Apply one control verb; returns False for verbs that are not the world's."""
+        def node(name: str) -> int | None:
+            v = args.get(name)
+            return int(v) if isinstance(v, (int, float)) and 0 <= int(v) < self.n else None
+
+        if verb == "pause":
+            self.paused, self._step_budget = True, None
+        elif verb == "resume":
+            self.paused, self._step_budget = False, None
+            self._release()
+        elif verb == "step":
+            self.paused, self._step_budget = False, max(1, int(args.get("n", 1) or 1))
+            self._release()
+        elif verb == "speed":
+            f = args.get("factor")
+            if not isinstance(f, (int, float)) or not f > 0:
+                return False
+            if self._t0 is not None:
+                import time as _t
+
+                now = _t.monotonic()
+                # keep the current tick's phase: re-anchor t0 so that elapsed ticks stay where they are
+                elapsed_ticks = (now - self._t0) / self.period
+                self.period = self.T / float(f)
+                self._t0 = now - elapsed_ticks * self.period
+            else:
+                self.period = self.T / float(f)
+        elif verb in ("link_drop", "link_heal"):
+            a, b = node("a"), node("b")
+            if a is None or b is None or a == b:
+                return False
+            e = (min(a, b), max(a, b))
+            (self.dropped_links.add if verb == "link_drop" else self.dropped_links.discard)(e)
+        elif verb == "link_loss":
+            p = args.get("p")
+            if not isinstance(p, (int, float)) or not 0 <= p <= 1:
+                return False
+            self.link_loss = float(p)
+        elif verb == "partition":
+            g = args.get("groups")
+            if not isinstance(g, list) or len(g) != self.n:
+                return False
+            self.groups = [int(x) for x in g]
+        elif verb == "heal":
+            self.groups, self.link_loss = None, 0.0
+            self.dropped_links.clear()
+        else:
+            return False
+        return True
+
+    def _release(self) -> None:
+        if self._hold:
+            self._hold = False
+            self._advance()
+
+    def _apply_link_faults(self, adj: np.ndarray) -> None:
+        for a, b in self.dropped_links:
+            adj[a, b] = adj[b, a] = 0.0
+        if self.groups is not None:
+            g = np.array(self.groups)
+            adj[g[:, None] != g[None, :]] = 0.0
+        if self.link_loss > 0:
+            iu = np.triu_indices(self.n, 1)
+            lost = self._fault_rng.random(len(iu[0])) < self.link_loss
+            adj[iu[0][lost], iu[1][lost]] = 0.0
+            adj[iu[1][lost], iu[0][lost]] = 0.0
 
     @property
     def finished(self) -> bool:
@@ -80,7 +168,7 @@ class WorldRole(Role):
 
     @property
     def waiting(self) -> bool:
-        return self._open
+        return self._open and not self._hold
 
     def start(self) -> None:
         self._publish_tick()
@@ -100,6 +188,13 @@ class WorldRole(Role):
             return
         if self._t0 is None:
             self._t0 = now
+        if self.paused:
+            if self._pause_started is None:
+                self._pause_started = now
+            return
+        if self._pause_started is not None:  # the clock stood still while paused
+            self._t0 += now - self._pause_started
+            self._pause_started = None
         if self._open and now >= self._t0 + (self.k + 1) * self.period:
             self._advance()
 
@@ -114,6 +209,7 @@ class WorldRole(Role):
             d = self.target_pos.size
             dist = np.linalg.norm(self.positions[:, :d] - self.target_pos[None, :], axis=1)
             b = [self.beta if di <= self.sensing_range else 0.0 for di in dist]
+        self._apply_link_faults(adj)
         for i, a in enumerate(self.alive):
             if not a:
                 adj[i, :] = 0.0
@@ -153,6 +249,13 @@ class WorldRole(Role):
             self._advance()
 
     def _advance(self) -> None:
+        if self.paused and not self.realtime:
+            self._hold = True  # lockstep: the tick is complete; the next one waits for resume/step
+            return
+        if self._step_budget is not None:
+            self._step_budget -= 1
+            if self._step_budget <= 0:
+                self.paused, self._step_budget = True, None
         self.stats["missing_states"] += len(self._expected - set(self._states))
         for i, s in self._states.items():
             self.positions[i] = s.pos[: self.positions.shape[1]]

@@ -21,7 +21,8 @@ import numpy as np
 from ..bus import Bus
 from ..estimators.base import Estimator, TickContext
 from ..models import LinearSensor, integrate_double_integrator
-from ..wire import Estimate, Meas, Message, State, Tick, Truth, Xchg
+from ..seeding import rng_for
+from ..wire import Control, Estimate, Meas, Message, State, Tick, Truth, Xchg
 from .common import Role
 
 
@@ -51,6 +52,9 @@ class SensorRole(Role):
         self._prior: np.ndarray | None = None
         self._nbrs: list[int] = []
         self.counters: Counter = Counter()
+        self._burst_ticks = 0
+        self._burst_mag = 0.0
+        self._outlier_rng = rng_for(0, "agent", self.i, "outliers")
 
     # ------------------------------------------------------------------ wiring
     def subscribe(self, bus: Bus) -> None:
@@ -59,6 +63,16 @@ class SensorRole(Role):
         bus.subscribe("agent/*/xchg", self._on_xchg)
         if self.rejoin:
             bus.subscribe("agent/*/estimate", self._on_peer_estimate)
+        bus.subscribe("control/outlier_burst", self._on_outlier_burst)
+
+    def _on_outlier_burst(self, key: str, msg: Message) -> None:
+        """Impulsive measurement noise (García Carrillo et al.): for the next ``ticks`` ticks add an
+        outlier of norm ``magnitude`` in a random direction to this sensor's measurement."""
+        assert isinstance(msg, Control)
+        who = msg.args.get("agent", -1)
+        if who in (-1, self.i):
+            self._burst_ticks = max(0, int(msg.args.get("ticks", 1) or 0))
+            self._burst_mag = float(msg.args.get("magnitude", 0.0) or 0.0)
 
     @property
     def finished(self) -> bool:
@@ -138,6 +152,11 @@ class SensorRole(Role):
         tick, truth = self._ticks[self.k], self._truth[self.k]
         b = float(tick.b[self.i])
         y = self.sensor.measure(truth.x, b, self.rng)
+        if self._burst_ticks > 0:
+            d = self._outlier_rng.standard_normal(y.size)
+            y = y + self._burst_mag * d / max(np.linalg.norm(d), 1e-12)
+            self._burst_ticks -= 1
+            self.counters["outliers_injected"] += 1
         self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy()))
         self._nbrs = self._neighbours()
         if self._joining:

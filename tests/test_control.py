@@ -1,0 +1,96 @@
+"""The control plane (control/**): world-side link faults and pause/step, launcher-side kill/restart,
+sensor-side outlier bursts — unit-level on the world, then end to end over Zenoh."""
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agent.bus import LocalBus, ZenohBus
+from agent.scenario import load_scenario, parse_scenario
+from agent.wire import Control
+from flocktrack.cli import scenario_data
+from flocktrack.record import read_recording
+from flocktrack.run import run_zenoh_to_dir
+from topology.world import build_world
+
+SCEN = Path(__file__).resolve().parents[1] / "scenarios"
+
+
+def _links(t):
+    return {(i, j) for i, nb in enumerate(t.links) for j in nb if i < j}
+
+
+def test_world_link_faults_and_heal():
+    sc = load_scenario(SCEN / "gu_hu_normal.toml")
+    w = build_world(sc)
+    w.attach(LocalBus())
+    base = _links(w.make_tick(0))
+    a, b = sorted(base)[0]
+    assert w.apply_control("link_drop", {"a": a, "b": b})
+    assert (a, b) not in _links(w.make_tick(0))
+    groups = [0] * 5 + [1] * 5
+    assert w.apply_control("partition", {"groups": groups})
+    t = w.make_tick(0)
+    assert all(groups[i] == groups[j] for i, j in _links(t))
+    assert w.apply_control("heal", {})
+    assert _links(w.make_tick(0)) == base
+    assert w.apply_control("link_loss", {"p": 0.5})
+    lossy = [len(_links(w.make_tick(0))) for _ in range(50)]
+    assert 0.3 * len(base) < np.mean(lossy) < 0.7 * len(base)
+    assert not w.apply_control("link_loss", {"p": 3.0})      # rejected, not applied
+    assert not w.apply_control("link_drop", {"a": 0, "b": 99})
+    assert not w.apply_control("no_such_verb", {})
+
+
+def test_controls_end_to_end_over_zenoh(tmp_path):
+    data = scenario_data(str(SCEN / "gu_hu_normal.toml"), [], **{"run.ticks": 160, "run.mode": "lockstep"})
+    sc = parse_scenario(data, "gu_hu_normal.toml")
+    plan = {20: ("link_drop", {"a": 0, "b": 1}), 40: ("partition", {"groups": [0.0] * 5 + [1.0] * 5}),
+            60: ("heal", {}), 70: ("kill", {"agent": 3}), 100: ("restart", {"agent": 3}),
+            110: ("outlier_burst", {"agent": 4, "ticks": 5, "magnitude": 50.0}), 120: ("pause", {})}
+    state = {"bus": None, "k": -1, "sent": set(), "paused_at": None}
+
+    def hook(launcher):
+        if state["bus"] is None:
+            state["bus"] = ZenohBus(launcher.run, connect=launcher.endpoint)
+            state["bus"].subscribe("world/tick", lambda key, m: state.__setitem__("k", max(state["k"], m.k)))
+        bus = state["bus"]
+        bus.poll(0)
+        for k, (verb, args) in plan.items():
+            if state["k"] >= k and k not in state["sent"]:
+                bus.publish(f"control/{verb}", Control(verb=verb, args=args))
+                state["sent"].add(k)
+                if verb == "pause":
+                    state["paused_at"] = time.monotonic()
+        if state["paused_at"] is not None and time.monotonic() - state["paused_at"] > 1.5:
+            bus.publish("control/resume", Control(verb="resume"))
+            state["paused_at"] = None
+
+    try:
+        summary, info = run_zenoh_to_dir(sc, data, tmp_path, quiet=True, on_poll=hook, timeout_s=300)
+    finally:
+        if state["bus"] is not None:
+            state["bus"].close()
+    assert info["rc"] == 0
+    rec = read_recording(tmp_path / "recording.mcap")
+    events = {m.verb: m.k for key, m, _ in rec.messages if key == "world/event"}
+    assert {"link_drop", "partition", "heal", "pause", "resume"} <= set(events), events
+    ticks = {m.k: m for key, m, _ in rec.messages if key == "world/tick"}
+    assert (0, 1) not in _links(ticks[events["link_drop"]])
+    tp = ticks[events["partition"]]
+    assert all((i < 5) == (j < 5) for i, j in _links(tp))
+    th = ticks[events["heal"] + 1]
+    assert any((i < 5) != (j < 5) for i, j in _links(th))
+    # kill/restart by the launcher: the world saw agent 3 leave and come back
+    alive3 = [ticks[k].alive[3] for k in sorted(ticks)]
+    assert not all(alive3) and alive3[-1]
+    assert any(key == "control/kill" for key, _, _ in rec.messages)
+    # the outlier burst shows in agent 4's measurements
+    y4 = {m.k: m.y for key, m, _ in rec.messages if key == "agent/4/meas"}
+    truth = {m.k: m.x for key, m, _ in rec.messages if key == "target/truth"}
+    big = [k for k in y4 if np.linalg.norm(y4[k] - truth[k][:2]) > 40]
+    assert 1 <= len(big) <= 5 and min(big) >= 110
+    stats = json.loads((tmp_path / "stats" / "world_0.json").read_text())["role"]
+    assert stats["controls"] >= 5
