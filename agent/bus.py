@@ -47,23 +47,32 @@ class BusStats:
     sent: int = 0
     sent_by_key: Counter = field(default_factory=Counter)
     received: int = 0
+    skipped: int = 0  #: not decoded: a prefilter said the role would ignore them
     dropped: Counter = field(default_factory=Counter)
     handler_errors: int = 0
 
     def as_dict(self) -> dict:
         return {"sent": self.sent, "sent_by_key": dict(sorted(self.sent_by_key.items())),
-                "received": self.received, "dropped": dict(self.dropped),
+                "received": self.received, "skipped": self.skipped, "dropped": dict(self.dropped),
                 "handler_errors": self.handler_errors}
 
 
+Prefilter = Callable[[str, bytes], bool]
+
+
 class Bus(Protocol):
-    """What a role needs from a transport."""
+    """What a role needs from a transport.
+
+    ``subscribe(..., prefilter=f)``: an optional cheap test on the raw bytes (see :func:`wire.peek`)
+    that lets a transport skip decoding messages the handler would ignore anyway. It must never
+    reject a message the handler would act on; a bus may ignore it (LocalBus decodes once for all).
+    """
 
     stats: BusStats
 
     def publish(self, key: str, msg: wire.Message) -> None: ...
 
-    def subscribe(self, pattern: str, handler: Handler) -> None: ...
+    def subscribe(self, pattern: str, handler: Handler, prefilter: Prefilter | None = None) -> None: ...
 
     def close(self) -> None: ...
 
@@ -109,7 +118,7 @@ class LocalBus:
         self.stats.sent_by_key[key] += 1
         self._queue.append((key, data))
 
-    def subscribe(self, pattern: str, handler: Handler) -> None:
+    def subscribe(self, pattern: str, handler: Handler, prefilter: Prefilter | None = None) -> None:
         self._subs.append((pattern, handler))
         self._routes.clear()
 
@@ -200,12 +209,13 @@ class ZenohBus:
         self.stats.sent += 1
         self.stats.sent_by_key[key] += 1
 
-    def subscribe(self, pattern: str, handler: Handler) -> None:
+    def subscribe(self, pattern: str, handler: Handler, prefilter: Prefilter | None = None) -> None:
         n = len(self.prefix)
         q = self._q
+        target = handler if prefilter is None else ("filtered", handler, prefilter)
 
         def on_sample(sample) -> None:
-            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), handler))
+            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), target))
 
         self._decls.append(self.session.declare_subscriber(self.prefix + pattern, on_sample))
 
@@ -230,7 +240,12 @@ class ZenohBus:
             return 0
         while True:
             key, data, handler = item
-            if isinstance(handler, tuple):
+            if isinstance(handler, tuple) and handler[0] == "filtered":
+                if handler[2](key, data):
+                    deliver(self.stats, [handler[1]], key, data)
+                else:
+                    self.stats.skipped += 1
+            elif isinstance(handler, tuple):
                 try:
                     handler[1](key, data)
                 except Exception:

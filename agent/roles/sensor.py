@@ -22,7 +22,7 @@ from ..bus import Bus
 from ..estimators.base import Estimator, TickContext
 from ..models import LinearSensor, integrate_double_integrator
 from ..seeding import rng_for
-from ..wire import Control, Estimate, Meas, Message, State, Tick, Truth, Xchg
+from ..wire import Control, Estimate, Meas, Message, State, Tick, Truth, Xchg, peek
 from .common import Role
 
 
@@ -60,7 +60,7 @@ class SensorRole(Role):
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
         bus.subscribe("target/truth", self._on_truth)
-        bus.subscribe("agent/*/xchg", self._on_xchg)
+        bus.subscribe("agent/*/xchg", self._on_xchg, prefilter=self._wants_xchg)
         if self.rejoin:
             bus.subscribe("agent/*/estimate", self._on_peer_estimate)
         bus.subscribe("control/outlier_burst", self._on_outlier_burst)
@@ -116,6 +116,27 @@ class SensorRole(Role):
             self._nbrs = [j for j in self._nbrs if j != ident]
             self.counters["neighbours_lost"] += 1
             self._check_round()
+
+    def _wants_xchg(self, key: str, data: bytes) -> bool:
+        """Cheap pre-decode test mirroring :meth:`_on_xchg`: skip our own, late, and current-tick
+        non-neighbour payloads (anything unsure is decoded and judged by the handler)."""
+        try:
+            j = int(key.split("/")[1])
+        except (IndexError, ValueError):
+            return True
+        if j == self.i:
+            return False
+        h = peek(data)
+        k, r = h.get("k"), h.get("r")
+        if k is None or r is None:
+            return True
+        if k < self.k or (k == self.k and 0 <= self.r and r < self.r):
+            self.counters["late_payloads"] += 1
+            return False
+        if k == self.k and self.r >= 0 and j not in self._nbrs:
+            self.counters["non_neighbour_payloads"] += 1
+            return False
+        return True
 
     def _on_xchg(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Xchg)

@@ -1,0 +1,147 @@
+"""Benchmark: lockstep ticks/s and per-process memory over Zenoh for N = 10, 30, 60 sensors, beside the
+same scenario on LocalBus and beside a bare Zenoh barrier (bench/zenoh_barrier.py) with the same
+message sizes and neighbour counts; exchange-round latency (median, p99) from the recording.
+
+    python bench/bench_runtime.py [--sizes 10 30 60] [--ticks 100]   → bench/results/runtime.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from agent import wire  # noqa: E402
+from agent.scenario import parse_scenario  # noqa: E402
+from flocktrack.cli import scenario_data  # noqa: E402
+from flocktrack.launch import free_port, open_router  # noqa: E402
+from flocktrack.record import read_recording  # noqa: E402
+from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir  # noqa: E402
+from topology.graph import neighbour_lists, range_adjacency  # noqa: E402
+
+
+def scenario(n: int, ticks: int, rounds: int):
+    rows = {10: 2, 30: 3, 60: 6}.get(n, max(1, n // 10))
+    data = scenario_data(str(ROOT / "scenarios" / "gu_hu_normal.toml"), [], **{
+        "run.ticks": ticks, "run.mode": "lockstep", "sensors.n": n, "sensors.grid_rows": rows,
+        "sensors.origin": [-4.0 * (n // rows), -4.0 * rows], "estimator.rounds": rounds})
+    return data, parse_scenario(data, f"bench-N{n}")
+
+
+def rss_mb(pid: int) -> float | None:
+    try:
+        for line in open(f"/proc/{pid}/status"):
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
+    data, sc = scenario(n, ticks, rounds)
+    peak: dict[int, float] = {}
+
+    def hook(launcher):
+        for c in launcher.children.values():
+            if c.proc and c.proc.poll() is None:
+                m = rss_mb(c.proc.pid)
+                if m:
+                    peak[c.proc.pid] = max(peak.get(c.proc.pid, 0.0), m)
+
+    with tempfile.TemporaryDirectory() as d:
+        _summary, info = run_zenoh_to_dir(sc, data, Path(d), quiet=True, on_poll=hook, timeout_s=1800)
+        rec = read_recording(Path(d) / "recording.mcap")
+    t_tick = {m.k: t for key, m, t in rec.messages if key == "world/tick"}
+    t_end = {}
+    for key, m, t in rec.messages:
+        if key.endswith("/xchg"):
+            t_end[(m.k, m.r)] = max(t_end.get((m.k, m.r), 0), t)
+    lat = []
+    for (k, r), t in t_end.items():
+        prev = t_tick.get(k) if r == 0 else t_end.get((k, r - 1))
+        if prev is not None:
+            lat.append((t - prev) / 1e6)
+    ks = sorted(t_tick)
+    steady = (t_tick[ks[-1]] - t_tick[ks[0]]) / 1e9
+    return {"ticks_per_s": (len(ks) - 1) / steady, "wall_s_including_startup": info["wall_s"],
+            "round_latency_ms": {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99))},
+            "rss_mb": {"median": float(np.median(list(peak.values()))), "max": float(max(peak.values())),
+                       "processes": len(peak)}}
+
+
+def inproc_run(n: int, ticks: int, rounds: int) -> dict:
+    data, sc = scenario(n, ticks, rounds)
+    with tempfile.TemporaryDirectory() as d:
+        _s, info = run_inproc_to_dir(sc, data, Path(d))
+    return {"ticks_per_s": info["ticks_per_s"]}
+
+
+def barrier_run(n: int, ticks: int, rounds: int) -> dict:
+    data, sc = scenario(n, ticks, rounds)
+    adj = range_adjacency(sc.initial_positions(), sc.topology.range)
+    nb = neighbour_lists(adj)
+    m = sc.m
+    xbytes = len(wire.encode(wire.Xchg(src=0, k=1, r=0, payload={"chi1": np.eye(m), "chi2": np.ones(m),
+                                                                  "chi3": np.eye(m)})))
+    sbytes = len(wire.encode(wire.State(src=0, k=1, pos=np.ones(2), vel=np.ones(2))))
+    tbytes = len(wire.encode(wire.Tick(k=1, t=0.1, n=n, links=nb, weights=[[1.0] * len(x) for x in nb], b=[1.0] * n,
+                                       delta_max=int(max(map(len, nb))), alive=[True] * n,
+                                       positions=sc.initial_positions())))
+    port = free_port()
+    router = open_router(port)
+    ep = f"tcp/127.0.0.1:{port}"
+    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
+        json.dump(nb, f)
+    common = ["--n", str(n), "--rounds", str(rounds), "--ticks", str(ticks), "--connect", ep, "--nbrs", f.name,
+              "--xbytes", str(xbytes), "--sbytes", str(sbytes), "--tbytes", str(tbytes)]
+    script = str(ROOT / "bench" / "zenoh_barrier.py")
+    workers = [subprocess.Popen([sys.executable, script, "worker", "--id", str(i), *common]) for i in range(n)]
+    try:
+        out = subprocess.run([sys.executable, script, "coordinator", *common], capture_output=True, text=True,
+                             timeout=1800)
+        res = json.loads(out.stdout.strip().splitlines()[-1])
+    finally:
+        for w in workers:
+            try:
+                w.wait(30)
+            except subprocess.TimeoutExpired:
+                w.kill()
+        router.close()
+    return {"ticks_per_s": res["ticks_per_s"], "message_bytes": {"xchg": xbytes, "state": sbytes, "tick": tbytes},
+            "mean_degree": float(np.mean([len(x) for x in nb]))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10, 30, 60])
+    ap.add_argument("--ticks", type=int, default=100)
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "runtime.json"))
+    a = ap.parse_args()
+    results = {"ticks": a.ticks, "rounds": a.rounds, "machine": {"cpus": __import__("os").cpu_count()},
+               "date": time.strftime("%Y-%m-%d"), "sizes": {}}
+    for n in a.sizes:
+        r = {"barrier": barrier_run(n, a.ticks, a.rounds), "zenoh": zenoh_run(n, a.ticks, a.rounds),
+             "localbus": inproc_run(n, a.ticks, a.rounds)}
+        r["zenoh_vs_barrier"] = r["zenoh"]["ticks_per_s"] / r["barrier"]["ticks_per_s"]
+        results["sizes"][str(n)] = r
+        print(f"N={n}: zenoh {r['zenoh']['ticks_per_s']:.2f} ticks/s, barrier {r['barrier']['ticks_per_s']:.2f}, "
+              f"ratio {r['zenoh_vs_barrier']:.2f}, LocalBus {r['localbus']['ticks_per_s']:.2f}, "
+              f"round latency median {r['zenoh']['round_latency_ms']['median']:.1f} ms, "
+              f"RSS median {r['zenoh']['rss_mb']['median']:.0f} MB", flush=True)
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.out).write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
