@@ -89,6 +89,42 @@ def _g(v) -> str:
     return "n/a" if v is None else f"{v:.4g}"
 
 
+def cmd_fault(args) -> int:
+    """Publish one control/fault command on a running flock (what the dashboard's buttons do)."""
+    from agent.bus import ZenohBus
+    from agent.wire import Control, WireError, decode, encode
+
+    kv = {}
+    for item in args.args:
+        k, sep, v = item.partition("=")
+        if not sep:
+            print(f"error: argument {item!r} must look like name=value", file=sys.stderr)
+            return 2
+        kv[k] = _parse_value(v)
+    msg = Control(verb=args.verb, args=kv)
+    try:
+        decode(f"control/{args.verb}", encode(msg))  # the same validation every receiver applies
+    except WireError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        bus = ZenohBus(args.run, connect=args.connect)
+    except Exception as exc:  # zenoh.ZError: nobody listening there
+        print(f"error: cannot reach a router at {args.connect} ({exc}); is the run going? "
+              f"`flocktrack run` prints its endpoint", file=sys.stderr)
+        return 1
+    try:
+        import time as _t
+
+        _t.sleep(0.3)  # let the subscription routes reach us
+        bus.publish(f"control/{args.verb}", msg)
+        _t.sleep(0.2)
+    finally:
+        bus.close()
+    print(f"sent control/{args.verb} {kv} to ft/{args.run}/ via {args.connect}")
+    return 0
+
+
 def cmd_metrics(args) -> int:
     from .record import metrics_from_recording
 
@@ -133,6 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
     r.add_argument("--out", required=True)
     r.set_defaults(fn=cmd_run)
+    fl = sub.add_parser("fault", help="send a control/fault command to a running flock")
+    fl.add_argument("verb", help="pause, resume, step, speed, kill, restart, link_drop, link_heal, link_loss, "
+                                 "partition, heal, outlier_burst")
+    fl.add_argument("args", nargs="*", help="name=value (TOML values), e.g. agent=3 or groups=[0,0,1,1]")
+    fl.add_argument("--run", required=True, help="the run name printed by `flocktrack run`")
+    fl.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    fl.set_defaults(fn=cmd_fault)
     mt = sub.add_parser("metrics", help="recompute summary.json from a recording")
     mt.add_argument("recording")
     mt.add_argument("--out", required=True)

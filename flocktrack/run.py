@@ -120,6 +120,9 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     rc: int | None = None
     try:
         launcher.start()
+        if not quiet:
+            print(f"run {run} on {launcher.endpoint} ({sc.sensors.n} sensors, {sc.run.mode}); faults: "
+                  f"flocktrack fault VERB --run {run} --connect {launcher.endpoint}", file=sys.stderr)
         rc = launcher.wait(timeout_s=timeout_s, on_poll=on_poll)
         if keep_dashboard and dashboard_port is not None and rc == 0 and launcher.alive("dashboard/0"):
             print(f"run finished; the dashboard stays up at http://localhost:{dashboard_port} — Ctrl-C to quit",
