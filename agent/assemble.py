@@ -29,7 +29,7 @@ def build_target(sc: Scenario) -> TargetRole:
                                   rng=rng if Q is not None else None)
     else:
         model = LinearTarget(sc.A, sc.B, sc.Qw, x0, rng)
-    return TargetRole(sc.run.ticks, model, t.kind == "intelligent", sc.pos_dims, t.estimate_source)
+    return TargetRole(sc.run.ticks, model, t.kind == "intelligent", sc.pos_dims, t.estimate_source, T=sc.run.T)
 
 
 def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rejoin: bool = False) -> SensorRole:
@@ -40,4 +40,5 @@ def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rej
         ctrl = FlockingController(c.kc, c.kr, c.kd, c.h1, c.h2, c.l1, c.l2, c.u_max)
     q0 = sc.initial_positions()[i]
     return SensorRole(i, sc.run.ticks, sc.run.T, est, LinearSensor(sc.C, sc.R),
-                      rng_for(sc.run.seed, "agent", i, "measurement"), q0, None, ctrl, sc.pos_dims, rejoin)
+                      rng_for(sc.run.seed, "agent", i, "measurement"), q0, None, ctrl, sc.pos_dims, rejoin,
+                      seed=sc.run.seed)

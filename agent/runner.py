@@ -85,7 +85,8 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
 def _loop(role: Role, bus, name: str, deadline_s: float, stop: StopFlag) -> None:
     last_key, since = None, time.monotonic()
     while not role.finished and not stop.set:
-        bus.poll(0.01)
+        if bus.poll(0.01) == 0:
+            role.on_idle()
         now = time.monotonic()
         role.on_timer(now)
         key = role.wait_key

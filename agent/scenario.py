@@ -131,6 +131,36 @@ class ControlCfg:
     u_max: float | None = None
 
 
+FAULT_KINDS = ("link_loss", "delay", "duplicate", "reorder", "partition", "crash", "pause", "router_restart",
+               "byzantine", "outliers", "blind", "noise", "evade")
+
+
+@dataclass(frozen=True)
+class FaultEventCfg:
+    """One scheduled fault (Jepsen-style nemesis with explicit heal); see topology/faults.py."""
+
+    kind: Literal["link_loss", "delay", "duplicate", "reorder", "partition", "crash", "pause", "router_restart",
+                  "byzantine", "outliers", "blind", "noise", "evade"] = "link_loss"
+    start: int = 0
+    heal: int | None = None
+    targets: str = "all"      #: all | agents:1,2 | links:0-1,2-3 | random:k | most_connected | halves | groups:0,0,1,…
+    p: float = 1.0            #: link_loss / duplicate / reorder probability
+    direction: Literal["both", "in", "out"] = "both"
+    delay_ticks: int = 1
+    mode: Literal["nan", "huge", "stale", "bias"] = "bias"
+    bias: Vector | None = None
+    magnitude: float = 50.0   #: outlier norm; "huge" Byzantine factor is 1e6
+    noise_scale: float = 3.0
+    accel: float = 2.0
+
+
+@dataclass(frozen=True)
+class FaultsCfg:
+    seed: int | None = None   #: default: the run seed
+    link_loss: float = 0.0    #: shorthand: every directed link drops with this probability, all run long
+    events: list[FaultEventCfg] = field(default_factory=list)
+
+
 @dataclass(frozen=True)
 class Scenario:
     run: RunCfg
@@ -139,6 +169,7 @@ class Scenario:
     estimator: EstimatorCfg = field(default_factory=EstimatorCfg)
     topology: TopologyCfg = field(default_factory=TopologyCfg)
     control: ControlCfg = field(default_factory=ControlCfg)
+    faults: FaultsCfg = field(default_factory=FaultsCfg)
     source: str = "<scenario>"
 
     # ------------------------------------------------------------------ derived model matrices
@@ -220,7 +251,7 @@ class Scenario:
 
 
 _SECTIONS = {"run": RunCfg, "target": TargetCfg, "sensors": SensorsCfg, "estimator": EstimatorCfg,
-             "topology": TopologyCfg, "control": ControlCfg}
+             "topology": TopologyCfg, "control": ControlCfg, "faults": FaultsCfg}
 _REQUIRED = {"run", "target", "sensors"}
 _REQUIRED_KEYS = {("target", "x0"), ("sensors", "n")}
 
@@ -315,6 +346,12 @@ def _build(cls: type, table: Any, src: str, section: str) -> Any:
         if f.name not in table:
             if (section, f.name) in _REQUIRED_KEYS:
                 raise ScenarioError(src, key, "is required", f"add {f.name} = … to [{section}]")
+            continue
+        if cls is FaultsCfg and f.name == "events":
+            ev = table["events"]
+            if not isinstance(ev, list):
+                raise ScenarioError(src, key, "expected an array of tables", "write [[faults.events]] blocks")
+            kw["events"] = [_build(FaultEventCfg, e, src, f"faults.events[{i}]") for i, e in enumerate(ev)]
             continue
         if cls is TopologyCfg and f.name == "graphs":
             gl = table["graphs"]
@@ -461,7 +498,53 @@ def validate(sc: Scenario) -> Scenario:
             raise ScenarioError(src, "topology.graphs", "no graph of the schedule lets any sensor see the target "
                                 "(every b is 0), so no estimator can track it",
                                 "give at least one sensor b > 0 in some graph")
+    _validate_faults(sc)
     return sc
+
+
+def _validate_faults(sc: Scenario) -> None:
+    src, fc, n = sc.source, sc.faults, sc.sensors.n
+    if not 0.0 <= fc.link_loss <= 1.0:
+        raise ScenarioError(src, "faults.link_loss", f"a probability in [0, 1] is expected, got {fc.link_loss}")
+    for i, e in enumerate(fc.events):
+        key = f"faults.events[{i}]"
+        if e.start < 0 or (e.heal is not None and e.heal <= e.start):
+            raise ScenarioError(src, f"{key}.heal", f"heal ({e.heal}) must come after start ({e.start})",
+                                "give heal > start, or leave heal out for a permanent fault")
+        if not 0.0 <= e.p <= 1.0:
+            raise ScenarioError(src, f"{key}.p", f"a probability in [0, 1] is expected, got {e.p}")
+        if e.delay_ticks < 0:
+            raise ScenarioError(src, f"{key}.delay_ticks", "must be ≥ 0")
+        t = e.targets
+        head, _, rest = t.partition(":")
+        try:
+            if head in ("all", "most_connected", "halves") and not rest:
+                ok = True
+            elif head == "agents":
+                ok = all(0 <= int(x) < n for x in rest.split(","))
+            elif head == "random":
+                ok = 1 <= int(rest) <= n
+            elif head == "links":
+                ok = all(0 <= int(a) < n and 0 <= int(b) < n and a != b
+                         for a, b in (x.split("-") for x in rest.split(",")))
+            elif head == "groups":
+                ok = len(rest.split(",")) == n and all(int(x) >= 0 for x in rest.split(","))
+            else:
+                ok = False
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ScenarioError(src, f"{key}.targets", f"cannot read target selector {t!r}",
+                                f"use all, agents:1,2, links:0-1,2-3, random:k (k ≤ {n}), most_connected, halves, "
+                                f"or groups:<one group id per sensor>")
+        if e.kind == "partition" and head not in ("halves", "groups"):
+            raise ScenarioError(src, f"{key}.targets", "a partition needs targets = \"halves\" or \"groups:…\"")
+        if e.kind == "bias" and e.bias is not None and len(e.bias) != np.shape(sc.sensors.C)[0]:
+            raise ScenarioError(src, f"{key}.bias", "one bias value per measurement component")
+        if e.kind == "byzantine" and e.mode == "bias" and e.bias is not None \
+                and len(e.bias) != np.shape(sc.sensors.C)[0]:
+            raise ScenarioError(src, f"{key}.bias", f"expected {np.shape(sc.sensors.C)[0]} numbers (one per "
+                                "measurement component)")
 
 
 def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:

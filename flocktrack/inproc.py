@@ -32,6 +32,8 @@ def run_inproc(sc: Scenario, progress: Callable[[int, int], None] | None = None,
         if roles.world.finished:
             break
         if bus.idle:
+            if any([r.on_idle() for r in roles.all()]):
+                continue
             stuck = [r for r in roles.all() if r.waiting]
             if not stuck:
                 raise RuntimeError(f"in-process run stalled at tick {roles.world.k} with no role waiting")

@@ -168,6 +168,7 @@ class Launcher:
         self.ctl_bus = ZenohBus(self.run, connect=self.endpoint)
         self.ctl_bus.subscribe("control/kill", self._on_control)
         self.ctl_bus.subscribe("control/restart", self._on_control)
+        self.ctl_bus.subscribe("world/event", self._on_world_event)
         for c in self.plan():
             self.children[c.name] = c
             self._spawn(c)
@@ -189,6 +190,43 @@ class Launcher:
             c.restart_at = None
             self._event("restart", name, attempt=c.restarts, requested=True)
             self._spawn(c, rejoin=True)
+
+    def _on_world_event(self, key: str, msg) -> None:
+        """Process-level faults of the plan (topology/faults.py): crash → SIGKILL (restart at heal),
+        pause → SIGSTOP (SIGCONT at heal), router_restart → close the router (reopen at heal)."""
+        if msg.verb != "fault" or msg.args.get("kind") not in ("crash", "pause", "router_restart"):
+            return
+        kind, phase = msg.args["kind"], msg.args.get("phase")
+        names = [f"agent/{int(a)}" for a in msg.args.get("agents", [])]
+        self._event("fault", kind, phase=phase, agents=names, k=msg.k)
+        if kind == "crash":
+            for nme in names:
+                c = self.children.get(nme)
+                if c is None:
+                    continue
+                if phase == "start":
+                    c.hold, c.restart_at = True, None
+                    self.kill(nme, signal.SIGKILL)
+                elif not self.alive(nme) and not self._stopping.is_set():
+                    c.hold = False
+                    self._spawn(c, rejoin=True)
+                    self._event("restart", nme, attempt=c.restarts, fault=True)
+        elif kind == "pause":
+            for nme in names:
+                self.kill(nme, signal.SIGSTOP if phase == "start" else signal.SIGCONT)
+        elif kind == "router_restart":
+            if phase == "start" and self.router is not None:
+                self._router_down_at = time.monotonic()
+                threading.Thread(target=self._bounce_router, daemon=True).start()
+
+    def _bounce_router(self, down_s: float = 1.0) -> None:
+        """Close the embedded router, keep it down ``down_s``, reopen it on the same port."""
+        old, self.router = self.router, None
+        old.close()
+        self._event("router", "down")
+        time.sleep(down_s)
+        self.router = open_router(self.port)
+        self._event("router", "up")
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         """Fault injection / tests: signal one child."""

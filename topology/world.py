@@ -22,6 +22,7 @@ from agent.wire import Control, End, Message, State, Tick
 
 from agent.scenario import Scenario
 
+from .faults import FaultPlan
 from .graph import GraphSpec, PeriodicSchedule, edge_weights, max_degree, neighbour_lists, range_adjacency
 
 
@@ -42,7 +43,8 @@ def build_world(sc: Scenario, **kw) -> "WorldRole":
     P0 = sc.initial_positions()
     return WorldRole(sc.sensors.n, sc.run.ticks, sc.run.T, P0, x0[: min(sc.pos_dims, P0.shape[1])],
                      schedule=schedule_of(sc), radius=tp.range, sensing_range=sc.sensors.sensing_range,
-                     beta=sc.sensors.beta, speed=sc.run.speed, seed=sc.run.seed, **kw)
+                     beta=sc.sensors.beta, speed=sc.run.speed, seed=sc.run.seed,
+                     faults=FaultPlan(sc.faults, sc.sensors.n, sc.run.seed), **kw)
 
 
 class WorldRole(Role):
@@ -51,7 +53,7 @@ class WorldRole(Role):
     def __init__(self, n: int, ticks: int, T: float, positions0: np.ndarray, target_pos0: np.ndarray,
                  schedule: PeriodicSchedule | None = None, radius: float = np.inf,
                  sensing_range: float = np.inf, beta: float = 1.0, realtime: bool = False, speed: float = 1.0,
-                 seed: int = 0):
+                 seed: int = 0, faults: FaultPlan | None = None):
         super().__init__(ticks)
         self.realtime = bool(realtime)
         self.period = float(T) / float(speed)  # wall-clock seconds per tick in realtime
@@ -67,6 +69,7 @@ class WorldRole(Role):
         self.link_loss = 0.0
         self.groups: list[int] | None = None
         self._fault_rng = rng_for(seed, "world", 0, "faults")
+        self.plan = faults
         self.n, self.T = int(n), float(T)
         self.schedule = schedule
         self.radius = float(radius)
@@ -199,7 +202,8 @@ class WorldRole(Role):
             self._advance()
 
     # ------------------------------------------------------------------ the link table
-    def make_tick(self, k: int) -> Tick:
+    def graph(self, k: int) -> tuple[np.ndarray, list[float]]:
+        """Symmetric adjacency and visibility of tick k before the fault plan."""
         if self.schedule is not None:
             g = self.schedule.at(k)
             adj = g.adjacency()
@@ -214,11 +218,27 @@ class WorldRole(Role):
             if not a:
                 adj[i, :] = 0.0
                 adj[:, i] = 0.0
-        return Tick(k=k, t=k * self.T, n=self.n, links=neighbour_lists(adj), weights=edge_weights(adj), b=b,
-                    delta_max=max_degree(adj), alive=list(self.alive), positions=self.positions.copy())
+        return adj, b
+
+    def make_tick(self, k: int, graph: tuple[np.ndarray, list[float]] | None = None) -> Tick:
+        """The tick message: links[i] = the nodes whose payloads i hears (directed once the fault plan
+        drops single directions), weights aligned, b with blinded sensors at 0."""
+        adj, b = self.graph(k) if graph is None else graph
+        M = adj
+        if self.plan is not None and not self.plan.empty:
+            M = self.plan.directed_mask(adj)
+            for i in self.plan.blind():
+                b[i] = 0.0
+        return Tick(k=k, t=k * self.T, n=self.n, links=neighbour_lists(M), weights=edge_weights(M), b=b,
+                    delta_max=max_degree(M), alive=list(self.alive), positions=self.positions.copy())
 
     def _publish_tick(self) -> None:
-        self.last_tick = self.make_tick(self.k)
+        g = self.graph(self.k)
+        if self.plan is not None and not self.plan.empty:
+            for phase, f in self.plan.transitions(self.k, g[0]):
+                self.stats[f"fault_{phase}s"] = self.stats.get(f"fault_{phase}s", 0) + 1
+                self.publish("world/event", Control(k=self.k, verb="fault", args=f.event_args(phase)))
+        self.last_tick = self.make_tick(self.k, g)
         self._expected = {i for i in range(self.n) if self.alive[i]}
         self._open = True
         self.publish("world/tick", self.last_tick)

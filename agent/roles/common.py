@@ -52,5 +52,10 @@ class Role:
     def on_member(self, role: str, ident: int, alive: bool) -> None:
         """Membership change seen by the transport (a process appeared or vanished)."""
 
+    def on_idle(self) -> bool:
+        """Nothing more is arriving right now; return True if the role did something (released
+        messages it was holding back)."""
+        return False
+
     def on_timer(self, now: float) -> None:
         """Called periodically by a realtime driver with the wall-clock time (s)."""

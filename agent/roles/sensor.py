@@ -31,8 +31,15 @@ class SensorRole(Role):
 
     def __init__(self, i: int, ticks: int, T: float, estimator: Estimator, sensor: LinearSensor,
                  rng: np.random.Generator, q0: np.ndarray, p0: np.ndarray | None = None,
-                 controller=None, pos_dims: int = 2, rejoin: bool = False):
+                 controller=None, pos_dims: int = 2, rejoin: bool = False, seed: int = 0):
         super().__init__(ticks)
+        self.seed = int(seed)
+        self._faults: dict[int, dict] = {}     # active fault-plan events that concern this node
+        self._held: list[tuple[int, str, Message]] = []   # delayed payloads (release tick, key, msg)
+        self._reorder_slot: tuple[str, Message] | None = None
+        self._stale: dict[int, dict] = {}      # Byzantine "stale": the payloads replayed, per round
+        self._netem_rng = rng_for(seed, "agent", i, "netem")
+        self._fault_rng = rng_for(seed, "agent", i, "sensor_faults")
         self.rejoin = bool(rejoin)
         self._joining = False
         self._peer_est: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
@@ -54,7 +61,7 @@ class SensorRole(Role):
         self.counters: Counter = Counter()
         self._burst_ticks = 0
         self._burst_mag = 0.0
-        self._outlier_rng = rng_for(0, "agent", self.i, "outliers")
+        self._outlier_rng = rng_for(self.seed, "agent", self.i, "outliers")
 
     # ------------------------------------------------------------------ wiring
     def subscribe(self, bus: Bus) -> None:
@@ -64,6 +71,59 @@ class SensorRole(Role):
         if self.rejoin:
             bus.subscribe("agent/*/estimate", self._on_peer_estimate)
         bus.subscribe("control/outlier_burst", self._on_outlier_burst)
+        bus.subscribe("world/event", self._on_world_event)
+
+    # ------------------------------------------------------------------ fault plan (topology/faults.py)
+    def _on_world_event(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Control)
+        a = msg.args
+        if msg.verb != "fault" or a.get("kind") not in ("delay", "duplicate", "reorder", "byzantine", "outliers",
+                                                         "noise"):
+            return
+        fid = int(a.get("id", -1))
+        if a.get("phase") == "heal":
+            self._faults.pop(fid, None)
+            self._stale.clear()
+            return
+        agents = {int(x) for x in a.get("agents", [])}
+        links = a.get("links", [])
+        pairs = {frozenset((int(links[2 * t]), int(links[2 * t + 1]))) for t in range(len(links) // 2)}
+        if a["kind"] in ("byzantine", "outliers", "noise") and self.i not in agents:
+            return
+        self._faults[fid] = dict(a, agent_set=agents, pairs=pairs)
+        self.counters[f"fault_{a['kind']}"] += 1
+
+    def _link_faults(self, j: int) -> list[dict]:
+        """Receiver-side faults (delay, duplicate, reorder) on the link j → self."""
+        out = []
+        for f in self._faults.values():
+            if f["kind"] not in ("delay", "duplicate", "reorder"):
+                continue
+            if f["pairs"]:
+                hit = frozenset((self.i, j)) in f["pairs"]
+            else:
+                A, d = f["agent_set"], f.get("direction", "both")
+                hit = (self.i in A and d in ("both", "in")) or (j in A and d in ("both", "out"))
+            if hit:
+                out.append(f)
+        return out
+
+    def _sender_faults(self, kind: str) -> list[dict]:
+        return [f for f in self._faults.values() if f["kind"] == kind]
+
+    def _corrupt(self, r: int, payload: dict) -> dict:
+        """Byzantine sender: NaN, huge (×1e6), stale (replayed from the fault's first tick) payloads.
+        ("bias" lies about the measurement instead, see _begin.)"""
+        for f in self._sender_faults("byzantine"):
+            mode = f.get("mode")
+            if mode == "nan":
+                payload = {k: np.full_like(v, np.nan) for k, v in payload.items()}
+            elif mode == "huge":
+                payload = {k: v * 1e6 for k, v in payload.items()}
+            elif mode == "stale":
+                payload = self._stale.setdefault(r, {k: v.copy() for k, v in payload.items()})
+            self.counters["byzantine_payloads"] += 1
+        return payload
 
     def _on_outlier_burst(self, key: str, msg: Message) -> None:
         """Impulsive measurement noise (García Carrillo et al.): for the next ``ticks`` ticks add an
@@ -97,7 +157,27 @@ class SensorRole(Role):
                     del d[kk]
         if msg.k >= self.k and msg.n > self.i:
             self._ticks[msg.k] = msg
+            if self.r < 0 and msg.k > self.k and not (self.k in self._ticks and self.k in self._truth):
+                self._coast_to(msg.k)
             self._try_begin()
+
+    def _coast_to(self, k: int) -> None:
+        """The world has moved past ticks we never got (their tick or truth was lost, e.g. while the
+        router was down): predict through them with no information (b = 0, no neighbours) and stand
+        still, so that we take part again from tick ``k`` on."""
+        while self.k < min(k, self.ticks):
+            ctx = TickContext(k=self.k, t=self.k * self.T, n=self._ticks[k].n, b=0.0, T=self.T)
+            self.est.start(ctx, np.zeros(self.sensor.C.shape[0]))
+            for r in range(self.est.rounds):
+                self.est.absorb(r, {})
+            self.est.finish()
+            self.counters["coasted_ticks"] += 1
+            self.k += 1
+        for d in (self._ticks, self._truth):
+            for kk in [kk for kk in d if kk < self.k]:
+                del d[kk]
+        for kr in [kr for kr in self._xbuf if kr[0] < self.k]:
+            del self._xbuf[kr]
 
     def _on_truth(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Truth)
@@ -142,6 +222,28 @@ class SensorRole(Role):
         assert isinstance(msg, Xchg)
         if msg.src == self.i:
             return
+        if self._faults:
+            for f in self._link_faults(msg.src):
+                kind = f["kind"]
+                if kind == "delay":
+                    self._held.append((msg.k + int(f.get("delay_ticks", 1)), key, msg))
+                    self.counters["delayed_payloads"] += 1
+                    return
+                if kind == "duplicate" and self._netem_rng.random() < float(f.get("p", 1.0)):
+                    self.counters["duplicated_payloads"] += 1
+                    self._accept_xchg(key, msg)
+                if kind == "reorder" and self._netem_rng.random() < float(f.get("p", 1.0)):
+                    prev, self._reorder_slot = self._reorder_slot, (key, msg)
+                    self.counters["reordered_payloads"] += 1
+                    if prev is not None:
+                        self._accept_xchg(*prev)
+                    return
+        self._accept_xchg(key, msg)
+        if self._reorder_slot is not None:  # the held-back one goes after its successor
+            prev, self._reorder_slot = self._reorder_slot, None
+            self._accept_xchg(*prev)
+
+    def _accept_xchg(self, key: str, msg: Xchg) -> None:
         if msg.k < self.k or (msg.k == self.k and 0 <= self.r and msg.r < self.r):
             self.counters["late_payloads"] += 1
             return
@@ -169,10 +271,38 @@ class SensorRole(Role):
         t = self._ticks[self.k]
         return [j for j in t.links[self.i] if t.alive[j]]
 
+    def _sensor_faults(self, y: np.ndarray) -> np.ndarray:
+        """Sender-side faults on the measurement: noise × scale, impulsive outliers, a Byzantine bias."""
+        for f in self._sender_faults("noise"):
+            s = float(f.get("noise_scale", 1.0))
+            if s > 1:
+                y = y + np.sqrt(s * s - 1.0) * (self.sensor._L @ self._fault_rng.standard_normal(y.size))
+        for f in self._sender_faults("outliers"):
+            if self._fault_rng.random() < float(f.get("p", 1.0)):
+                d = self._fault_rng.standard_normal(y.size)
+                y = y + float(f.get("magnitude", 50.0)) * d / max(np.linalg.norm(d), 1e-12)
+                self.counters["outliers_injected"] += 1
+        for f in self._sender_faults("byzantine"):
+            if f.get("mode") == "bias":
+                bias = f.get("bias") or [float(f.get("magnitude", 50.0))] * y.size
+                y = y + np.asarray(bias, float)[: y.size]
+        return y
+
+    def _release_held(self) -> None:
+        due = [h for h in self._held if h[0] <= self.k]
+        if due:
+            self._held = [h for h in self._held if h[0] > self.k]
+            for _, key, msg in due:
+                self._accept_xchg(key, msg)  # arrives late: counted and dropped by the handler
+
     def _begin(self) -> None:
+        if self._held:
+            self._release_held()
         tick, truth = self._ticks[self.k], self._truth[self.k]
         b = float(tick.b[self.i])
         y = self.sensor.measure(truth.x, b, self.rng)
+        if self._faults:
+            y = self._sensor_faults(y)
         if self._burst_ticks > 0:
             d = self._outlier_rng.standard_normal(y.size)
             y = y + self._burst_mag * d / max(np.linalg.norm(d), 1e-12)
@@ -197,13 +327,24 @@ class SensorRole(Role):
         if self.r >= self.est.rounds:
             self._finish()
             return
-        self.publish(f"agent/{self.i}/xchg", Xchg(src=self.i, k=self.k, r=self.r, payload=self.est.payload(self.r)))
+        payload = self.est.payload(self.r)
+        if self._faults:
+            payload = self._corrupt(self.r, payload)
+        self.publish(f"agent/{self.i}/xchg", Xchg(src=self.i, k=self.k, r=self.r, payload=payload))
         self._check_round()
 
     def _check_round(self) -> None:
         got = self._xbuf.get((self.k, self.r), {})
         if all(j in got for j in self._nbrs):
             self._close_round()
+
+    def on_idle(self) -> bool:
+        """Nothing came after a held-back (reordered) payload: let it in now."""
+        if self._reorder_slot is None:
+            return False
+        prev, self._reorder_slot = self._reorder_slot, None
+        self._accept_xchg(*prev)
+        return True
 
     def _close_round(self) -> None:
         got = self._xbuf.pop((self.k, self.r), {})

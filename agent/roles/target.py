@@ -12,14 +12,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..bus import Bus
-from ..wire import Estimate, Message, State, Tick, Truth
+from ..wire import Control, Estimate, Message, State, Tick, Truth
 from .common import Role
 
 
 class TargetRole(Role):
     name = "target"
 
-    def __init__(self, ticks: int, model, intelligent: bool, pos_dims: int, estimate_source: str = "mean"):
+    def __init__(self, ticks: int, model, intelligent: bool, pos_dims: int, estimate_source: str = "mean",
+                 T: float | None = None):
         super().__init__(ticks)
         self.model = model
         self.intelligent = bool(intelligent)
@@ -31,6 +32,8 @@ class TargetRole(Role):
         self._last_xhat: np.ndarray | None = None
         self._waiting = False
         self._dead: set[int] = set()
+        self._evade: dict[int, float] = {}  # active "evade" faults: id -> acceleration
+        self.T = T
 
     def on_member(self, role: str, ident: int, alive: bool) -> None:
         if role == "agent":
@@ -40,6 +43,7 @@ class TargetRole(Role):
 
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
+        bus.subscribe("world/event", self._on_world_event)
         if self.intelligent:
             bus.subscribe("agent/*/estimate", self._on_estimate)
 
@@ -53,6 +57,12 @@ class TargetRole(Role):
 
     def _on_tick(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Tick)
+        if msg.k > self.k:
+            # ticks we never got (lost while disconnected): the target does not wait for anyone
+            if self._waiting:
+                self._move_intelligent()
+            while self.k < msg.k:
+                self._step_unobserved()
         if msg.k != self.k or self._waiting:
             return
         self._tick = msg
@@ -79,6 +89,13 @@ class TargetRole(Role):
                 self._check()
         # earlier/later ticks: ignore (a late estimate cannot change a past move)
 
+    def _step_unobserved(self) -> None:
+        if self.intelligent:
+            self.model.step(self._last_xhat if self._last_xhat is not None else np.array(self.model.x, float))
+        else:
+            self.model.step()
+        self.k += 1
+
     def _check(self) -> None:
         if all(i in self._est for i in self._expected()):
             self._move_intelligent()
@@ -101,7 +118,31 @@ class TargetRole(Role):
         self._est.clear()
         self._moved()
 
+    def _on_world_event(self, key: str, msg: Message) -> None:
+        assert isinstance(msg, Control)
+        if msg.verb == "fault" and msg.args.get("kind") == "evade":
+            fid = int(msg.args.get("id", -1))
+            if msg.args.get("phase") == "start":
+                self._evade[fid] = float(msg.args.get("accel", 2.0))
+            else:
+                self._evade.pop(fid, None)
+
+    def _evasive(self) -> None:
+        """Evasive manoeuvre: an extra acceleration ⟂ to the velocity (a hard turn) while active."""
+        d = self.pos_dims
+        x = self.model.x
+        if not self._evade or x.size < 2 * d or d != 2 or self._tick is None:
+            return
+        T = self.T if self.T is not None else 1.0
+        v = x[d:2 * d]
+        sp = float(np.linalg.norm(v))
+        perp = np.array([-v[1], v[0]]) / sp if sp > 1e-9 else np.array([0.0, 1.0])
+        a = sum(self._evade.values()) * perp
+        x[:d] += 0.5 * T * T * a
+        x[d:2 * d] += T * a
+
     def _moved(self) -> None:
+        self._evasive()
         x = np.asarray(self.model.x, float)
         d = self.pos_dims
         vel = x[d:2 * d] if x.size >= 2 * d else np.zeros(d)
