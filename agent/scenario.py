@@ -102,6 +102,7 @@ class EstimatorCfg:
     Q_design: Matrix | None = None
     comm_noise: Matrix | None = None
     lambda0: float | None = None
+    resilient_f: int = 0  #: W-MSR: tolerate up to f Byzantine neighbours (0 = plain consensus)
 
 
 @dataclass(frozen=True)
@@ -438,6 +439,8 @@ def validate(sc: Scenario) -> Scenario:
             raise ScenarioError(src, "sensors.positions", f"flocking sensors live in the target's {t.dim}-D space")
     if e.rounds < 0:
         raise ScenarioError(src, "estimator.rounds", f"must be ≥ 0, got {e.rounds}")
+    if e.resilient_f < 0:
+        raise ScenarioError(src, "estimator.resilient_f", f"must be ≥ 0, got {e.resilient_f}")
     if e.eta not in ("1/(dmax+1)", "1/dmax"):
         try:
             float(e.eta)

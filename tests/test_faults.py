@@ -170,3 +170,22 @@ def test_fault_plan_validation_names_key_and_fix():
         with pytest.raises(ScenarioError) as e:
             _scenario("gu_hu_normal.toml", [ev])
         assert e.value.key == key, (ev, str(e.value))
+
+
+def _honest_rmse(tmp_path, f: int, byz_mode: str = "huge") -> float:
+    import csv
+
+    events = [{"kind": "byzantine", "targets": "agents:3", "mode": byz_mode, "start": 50}]
+    _inproc(tmp_path, "gu_hu_normal.toml", events, **{"run.ticks": 300, "estimator.resilient_f": f})
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    e = np.array([[float(r[f"err_{i}"]) for i in range(10) if i != 3] for r in rows[60:]])
+    return float(np.sqrt(np.mean(e ** 2)))
+
+
+@pytest.mark.parametrize("mode", ["huge", "bias"])
+def test_one_byzantine_sensor_ruins_plain_consensus_not_the_resilient_one(tmp_path, mode):
+    plain = _honest_rmse(tmp_path / "plain", 0, mode)
+    resilient = _honest_rmse(tmp_path / "wmsr", 1, mode)
+    base, _ = _inproc(tmp_path / "base", "gu_hu_normal.toml", [], **{"run.ticks": 300, "estimator.resilient_f": 1})
+    assert plain > 20 * resilient, (plain, resilient)
+    assert resilient < 3 * max(base["network_rmse"], 0.05), (resilient, base["network_rmse"])

@@ -28,8 +28,17 @@ def consensus_rate(delta_max: int, rule: str = "1/(dmax+1)") -> float:
 
 
 def disagreement(own: np.ndarray, others: Mapping[int, np.ndarray],
-                 weights: Mapping[int, float] | None = None) -> np.ndarray:
-    """Σⱼ gᵢⱼ (ξⱼ − ξᵢ) over the neighbours present in ``others`` (ascending id order)."""
+                 weights: Mapping[int, float] | None = None, trim: int = 0) -> np.ndarray:
+    """Σⱼ gᵢⱼ (ξⱼ − ξᵢ) over the neighbours present in ``others`` (ascending id order).
+
+    ``trim = f > 0`` makes it the W-MSR (weighted mean-subsequence-reduced) update that tolerates up
+    to f Byzantine neighbours in an (2f+1)-robust graph: element by element, the f largest values above
+    ξᵢ and the f smallest below it are discarded before summing (LeBlanc et al., IEEE JSAC 2013).
+    It no longer preserves the network sum, so Gu & Hu's mean-equals-centralized invariant holds only
+    for f = 0.
+    """
+    if trim > 0 and others:
+        return trimmed_disagreement(own, others, weights, trim)
     acc = np.zeros_like(np.asarray(own, dtype=float))
     for j in sorted(others):
         w = 1.0 if weights is None else float(weights[j])
@@ -37,8 +46,28 @@ def disagreement(own: np.ndarray, others: Mapping[int, np.ndarray],
     return acc
 
 
+def trimmed_disagreement(own: np.ndarray, others: Mapping[int, np.ndarray],
+                         weights: Mapping[int, float] | None, f: int) -> np.ndarray:
+    """W-MSR neighbour sum (see :func:`disagreement`), vectorised over the elements of ξ."""
+    own = np.asarray(own, dtype=float)
+    ids = sorted(others)
+    D = np.stack([np.asarray(others[j], dtype=float) - own for j in ids])           # (m, ...)
+    W = np.array([1.0 if weights is None else float(weights[j]) for j in ids]).reshape((-1,) + (1,) * own.ndim)
+    W = np.broadcast_to(W, D.shape)
+    order = np.argsort(D, axis=0, kind="stable")
+    Ds = np.take_along_axis(D, order, axis=0)
+    Ws = np.take_along_axis(W, order, axis=0)
+    m = D.shape[0]
+    n_hi = np.minimum(f, (D > 0).sum(axis=0))                                      # drop ≤ f above ξᵢ
+    n_lo = np.minimum(f, (D < 0).sum(axis=0))                                      # drop ≤ f below ξᵢ
+    rank = np.arange(m).reshape((-1,) + (1,) * own.ndim)
+    keep = (rank >= n_lo) & (rank < m - n_hi)
+    return np.sum(np.where(keep, Ws * Ds, 0.0), axis=0)
+
+
 def consensus_round(own: Mapping[str, np.ndarray], others: Mapping[int, Mapping[str, np.ndarray]],
-                    eta: float, keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
-    """One round of (16)/(18b) on every entry of a payload: ξᵢ ← ξᵢ + η Σⱼ (ξⱼ − ξᵢ)."""
+                    eta: float, keys: Sequence[str] | None = None, trim: int = 0) -> dict[str, np.ndarray]:
+    """One round of (16)/(18b) on every entry of a payload: ξᵢ ← ξᵢ + η Σⱼ (ξⱼ − ξᵢ)
+    (W-MSR-trimmed when ``trim`` = f > 0)."""
     keys = list(own) if keys is None else list(keys)
-    return {k: own[k] + eta * disagreement(own[k], {j: p[k] for j, p in others.items()}) for k in keys}
+    return {k: own[k] + eta * disagreement(own[k], {j: p[k] for j, p in others.items()}, trim=trim) for k in keys}

@@ -54,7 +54,8 @@ class DistributedMinimax(Estimator):
 
     def __init__(self, A: np.ndarray, Q: np.ndarray, C: np.ndarray, R: np.ndarray,
                  S: np.ndarray | None, n: int, x0: np.ndarray, P0: np.ndarray, rounds: int,
-                 eta_rule: str = "1/(dmax+1)"):
+                 eta_rule: str = "1/(dmax+1)", resilient_f: int = 0):
+        self.resilient_f = int(resilient_f)
         self.A = np.asarray(A, dtype=float)
         self.Q = np.asarray(Q, dtype=float)
         self.C = np.atleast_2d(np.asarray(C, dtype=float))
@@ -88,7 +89,7 @@ class DistributedMinimax(Estimator):
         good = valid_inbox(from_neighbours, self.payload_shapes())
         self.dropped += len(allowed) - len(good)
         eta = consensus_rate(ctx.delta_max, self.eta_rule)
-        new = consensus_round(chi, good, eta, keys=_KEYS)                           # (18b)
+        new = consensus_round(chi, good, eta, keys=_KEYS, trim=self.resilient_f)   # (18b), W-MSR if f > 0
         new["chi1"], new["chi3"] = sym(new["chi1"]), sym(new["chi3"])
         self._chi = new
 
@@ -139,5 +140,6 @@ class DistributedKalman(DistributedMinimax):
     """
 
     def __init__(self, A: np.ndarray, Q: np.ndarray, C: np.ndarray, R: np.ndarray, n: int,
-                 x0: np.ndarray, P0: np.ndarray, rounds: int, eta_rule: str = "1/(dmax+1)"):
-        super().__init__(A, Q, C, R, None, n, x0, P0, rounds, eta_rule)
+                 x0: np.ndarray, P0: np.ndarray, rounds: int, eta_rule: str = "1/(dmax+1)",
+                 resilient_f: int = 0):
+        super().__init__(A, Q, C, R, None, n, x0, P0, rounds, eta_rule, resilient_f)

@@ -373,7 +373,8 @@ class HinfSwitchingEstimator(Estimator):
     rounds = 1
 
     def __init__(self, A, C, K, x0, comm_noise_cov=None,
-                 rng: np.random.Generator | None = None) -> None:
+                 rng: np.random.Generator | None = None, resilient_f: int = 0) -> None:
+        self.resilient_f = int(resilient_f)  # W-MSR trimming of the neighbour term (0 = eq. (3) as printed)
         self._A = _mat(A, "A")
         self._C = _mat(C, "C")
         m, q = self._A.shape[0], self._C.shape[0]
@@ -436,7 +437,7 @@ class HinfSwitchingEstimator(Estimator):
         good = valid_inbox(inbox, self.payload_shapes())
         xs = {j: np.asarray(p["x"], dtype=float) for j, p in good.items() if j in nbrs}
         w = {j: self._ctx.weight_of(j) for j in xs}
-        self._z = self._C @ disagreement(self._x, xs, w) + self._w2
+        self._z = self._C @ disagreement(self._x, xs, w, trim=self.resilient_f) + self._w2
 
     def finish(self) -> None:
         if self._ctx is None:

@@ -28,9 +28,10 @@ def make_estimator(sc: Scenario, i: int, design: Mapping[str, Any] | None = None
         from .distributed_minimax import DistributedKalman, DistributedMinimax
 
         if e.name == "kalman":
-            return DistributedKalman(sc.A, sc.filter_Q(), sc.C, sc.R, sc.sensors.n, x0, P0, e.rounds, e.eta)
+            return DistributedKalman(sc.A, sc.filter_Q(), sc.C, sc.R, sc.sensors.n, x0, P0, e.rounds, e.eta,
+                                     e.resilient_f)
         return DistributedMinimax(sc.A, sc.filter_Q(), sc.C, sc.R, np.array(e.S, float), sc.sensors.n, x0, P0,
-                                  e.rounds, e.eta)
+                                  e.rounds, e.eta, e.resilient_f)
     if e.name == "hinf_switching":
         from .hinf_switching import HinfSwitchingEstimator
 
@@ -39,5 +40,5 @@ def make_estimator(sc: Scenario, i: int, design: Mapping[str, Any] | None = None
         K = np.array(design["K"], float)
         comm = None if e.comm_noise is None else np.array(e.comm_noise, float)
         return HinfSwitchingEstimator(sc.A, sc.C, K, x0, comm_noise_cov=comm,
-                                      rng=rng_for(sc.run.seed, "agent", i, "comm_noise"))
+                                      rng=rng_for(sc.run.seed, "agent", i, "comm_noise"), resilient_f=e.resilient_f)
     raise ValueError(f"unknown estimator {e.name!r}; known: {', '.join(NAMES)}")
