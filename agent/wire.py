@@ -405,6 +405,18 @@ def decode(key: str, data: bytes) -> Message:
     return msg
 
 
+def int_list(v: Any, lo: int = 0, hi: int = MAX_LIST_LEN) -> list[int] | None:
+    """A Control arg that must be a list of integers in [lo, hi) (numbers arrive as floats); None if not."""
+    if not isinstance(v, list):
+        return None
+    out = []
+    for x in v:
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or x != int(x) or not lo <= int(x) < hi:
+            return None
+        out.append(int(x))
+    return out
+
+
 def peek(data: bytes, names: tuple[str, ...] = ("k", "r"), max_fields: int = 6) -> dict[str, Any]:
     """Read a few leading scalar fields without decoding (or validating) the message — for cheap
     routing decisions (a sensor skipping a non-neighbour's payload). Returns {} on anything odd;

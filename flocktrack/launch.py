@@ -177,7 +177,7 @@ class Launcher:
         """control/kill {agent} SIGKILLs a sensor and holds it down; control/restart {agent} brings it
         back (rejoining the flock)."""
         i = msg.args.get("agent")
-        name = f"agent/{int(i)}" if isinstance(i, (int, float)) else None
+        name = f"agent/{int(i)}" if isinstance(i, (int, float)) and not isinstance(i, bool) and i == int(i) else None
         c = self.children.get(name) if name else None
         if c is None:
             return
@@ -196,8 +196,13 @@ class Launcher:
         pause → SIGSTOP (SIGCONT at heal), router_restart → close the router (reopen at heal)."""
         if msg.verb != "fault" or msg.args.get("kind") not in ("crash", "pause", "router_restart"):
             return
+        from agent.wire import int_list
+
         kind, phase = msg.args["kind"], msg.args.get("phase")
-        names = [f"agent/{int(a)}" for a in msg.args.get("agents", [])]
+        agents = int_list(msg.args.get("agents", []), 0, self.n)
+        if agents is None:
+            return
+        names = [f"agent/{a}" for a in agents]
         self._event("fault", kind, phase=phase, agents=names, k=msg.k)
         if kind == "crash":
             for nme in names:

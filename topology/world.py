@@ -246,6 +246,9 @@ class WorldRole(Role):
     # ------------------------------------------------------------------ collecting states
     def _on_state(self, key: str, msg: Message) -> None:
         assert isinstance(msg, State)
+        if msg.pos.size < self.positions.shape[1]:
+            self.stats["rejected_states"] = self.stats.get("rejected_states", 0) + 1
+            return
         if msg.k == self.k and msg.src < self.n:
             self._states[msg.src] = msg
             self._check()
@@ -254,7 +257,7 @@ class WorldRole(Role):
 
     def _on_target_state(self, key: str, msg: Message) -> None:
         assert isinstance(msg, State)
-        if msg.k == self.k:
+        if msg.k == self.k and msg.pos.size >= self.target_pos.size:
             self._target_state = msg
             self._check()
 

@@ -22,7 +22,7 @@ from ..bus import Bus
 from ..estimators.base import Estimator, TickContext
 from ..models import LinearSensor, integrate_double_integrator
 from ..seeding import rng_for
-from ..wire import Control, Estimate, Meas, Message, State, Tick, Truth, Xchg, peek
+from ..wire import Control, Estimate, Meas, Message, State, Tick, Truth, Xchg, int_list, peek
 from .common import Role
 
 
@@ -80,14 +80,30 @@ class SensorRole(Role):
         if msg.verb != "fault" or a.get("kind") not in ("delay", "duplicate", "reorder", "byzantine", "outliers",
                                                          "noise"):
             return
-        fid = int(a.get("id", -1))
+        fid = a.get("id")
+        agents_l, links = int_list(a.get("agents", [])), int_list(a.get("links", []))
+        if (not isinstance(fid, int) or isinstance(fid, bool) or a.get("phase") not in ("start", "heal")
+                or agents_l is None or links is None or len(links) % 2):
+            self.counters["rejected_events"] += 1
+            return
         if a.get("phase") == "heal":
             self._faults.pop(fid, None)
             self._stale.clear()
             return
-        agents = {int(x) for x in a.get("agents", [])}
-        links = a.get("links", [])
-        pairs = {frozenset((int(links[2 * t]), int(links[2 * t + 1]))) for t in range(len(links) // 2)}
+        agents = set(agents_l)
+        pairs = {frozenset((links[2 * t], links[2 * t + 1])) for t in range(len(links) // 2)}
+        bias = a.get("bias")
+        if bias is not None and not (isinstance(bias, list) and all(isinstance(b, float) for b in bias)):
+            self.counters["rejected_events"] += 1
+            return
+        for name in ("p", "magnitude", "noise_scale"):
+            if name in a and (isinstance(a[name], bool) or not isinstance(a[name], (int, float))):
+                self.counters["rejected_events"] += 1
+                return
+        if "delay_ticks" in a and (not isinstance(a["delay_ticks"], (int, float)) or isinstance(a["delay_ticks"], bool)
+                                   or not 0 <= a["delay_ticks"] <= 1000):
+            self.counters["rejected_events"] += 1
+            return
         if a["kind"] in ("byzantine", "outliers", "noise") and self.i not in agents:
             return
         self._faults[fid] = dict(a, agent_set=agents, pairs=pairs)
@@ -129,10 +145,14 @@ class SensorRole(Role):
         """Impulsive measurement noise (García Carrillo et al.): for the next ``ticks`` ticks add an
         outlier of norm ``magnitude`` in a random direction to this sensor's measurement."""
         assert isinstance(msg, Control)
-        who = msg.args.get("agent", -1)
+        who, ticks, mag = msg.args.get("agent", -1), msg.args.get("ticks", 1), msg.args.get("magnitude", 0.0)
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (who, ticks, mag)) \
+                or not 0 <= ticks <= 10_000:
+            self.counters["rejected_controls"] += 1
+            return
         if who in (-1, self.i):
-            self._burst_ticks = max(0, int(msg.args.get("ticks", 1) or 0))
-            self._burst_mag = float(msg.args.get("magnitude", 0.0) or 0.0)
+            self._burst_ticks = int(ticks)
+            self._burst_mag = float(mag)
 
     @property
     def finished(self) -> bool:
@@ -145,6 +165,9 @@ class SensorRole(Role):
     # ------------------------------------------------------------------ handlers
     def _on_tick(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Tick)
+        if msg.positions.shape[1] != self.q.size:
+            self.counters["rejected_ticks"] += 1  # not our world: wrong dimension
+            return
         if self.rejoin and not self._joining and msg.k > self.k and msg.n > self.i:
             # a restarted process joining a running flock: take up the world's clock and our last
             # known position, and re-initialise the filter from the neighbours' estimates (_begin)
@@ -181,13 +204,16 @@ class SensorRole(Role):
 
     def _on_truth(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Truth)
+        if msg.x.shape != (self.sensor.C.shape[1],):
+            self.counters["rejected_truths"] += 1
+            return
         if msg.k >= self.k:
             self._truth[msg.k] = msg
             self._try_begin()
 
     def _on_peer_estimate(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Estimate)
-        if msg.src != self.i and (self._joining or self.k == 0):
+        if msg.src != self.i and (self._joining or self.k == 0) and msg.x_next.shape == self.est.x.shape:
             self._peer_est[msg.src] = (msg.x_next, msg.P)
 
     def on_member(self, role: str, ident: int, alive: bool) -> None:

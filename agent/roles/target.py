@@ -83,7 +83,7 @@ class TargetRole(Role):
 
     def _on_estimate(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Estimate)
-        if msg.k == self.k:
+        if msg.k == self.k and msg.x.shape == np.shape(self.model.x):
             self._est[msg.src] = msg.x
             if self._waiting:
                 self._check()
@@ -121,9 +121,12 @@ class TargetRole(Role):
     def _on_world_event(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Control)
         if msg.verb == "fault" and msg.args.get("kind") == "evade":
-            fid = int(msg.args.get("id", -1))
+            fid, acc = msg.args.get("id"), msg.args.get("accel", 2.0)
+            if not isinstance(fid, int) or isinstance(acc, bool) or not isinstance(acc, (int, float)) \
+                    or abs(acc) > 1e3:
+                return
             if msg.args.get("phase") == "start":
-                self._evade[fid] = float(msg.args.get("accel", 2.0))
+                self._evade[fid] = float(acc)
             else:
                 self._evade.pop(fid, None)
 
