@@ -12,7 +12,7 @@ import numpy as np
 
 from .control.flocking import FlockingController
 from .estimators.registry import make_estimator
-from .models import IntelligentTarget, LinearSensor, LinearTarget
+from .models import DisturbedSensor, IntelligentTarget, LinearSensor, LinearTarget
 from .roles.sensor import SensorRole
 from .roles.target import TargetRole
 from .scenario import Scenario
@@ -39,6 +39,8 @@ def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rej
         c = sc.control
         ctrl = FlockingController(c.kc, c.kr, c.kd, c.h1, c.h2, c.l1, c.l2, c.u_max)
     q0 = sc.initial_positions()[i]
-    return SensorRole(i, sc.run.ticks, sc.run.T, est, LinearSensor(sc.C, sc.R),
+    D = sc.D_of(i)
+    meas = LinearSensor(sc.C_of(i), sc.R_of(i)) if D is None else DisturbedSensor(sc.C_of(i), D, sc.sensors.v_std)
+    return SensorRole(i, sc.run.ticks, sc.run.T, est, meas,
                       rng_for(sc.run.seed, "agent", i, "measurement"), q0, None, ctrl, sc.pos_dims, rejoin,
                       seed=sc.run.seed)

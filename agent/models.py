@@ -90,6 +90,7 @@ class LinearTarget:
 
     def step(self) -> np.ndarray:
         w = self.rng.multivariate_normal(np.zeros(self.Q.shape[0]), self.Q)
+        self.last_w = w  # the disturbance applied (recorded: H∞ ratios need it)
         self.x = self.A @ self.x + self.B @ w
         return self.x.copy()
 
@@ -132,6 +133,24 @@ class IntelligentTarget:
             x_next = x_next + self.B @ self.rng.multivariate_normal(np.zeros(self.Q.shape[0]), self.Q)
         self.x = x_next
         return self.x.copy()
+
+
+class DisturbedSensor:
+    """Measurement (2) of Zamani & Ugrinovskii: yᵢ = b·Cᵢ x + Dᵢ vᵢ, vᵢ ~ N(0, v_std² I) held over a tick.
+
+    Keeps the drawn disturbance in :attr:`last_v` (all of its components count in the H∞ ratios (5), (6),
+    also those that Dᵢ does not pass)."""
+
+    def __init__(self, C: np.ndarray, D: np.ndarray, v_std: float = 1.0):
+        self.C = np.atleast_2d(np.asarray(C, dtype=float))
+        self.D = np.atleast_2d(np.asarray(D, dtype=float))
+        self.v_std = float(v_std)
+        self.last_v: np.ndarray | None = None
+
+    def measure(self, x: np.ndarray, b: float, rng: np.random.Generator) -> np.ndarray:
+        v = self.v_std * rng.standard_normal(self.D.shape[1])
+        self.last_v = v
+        return float(b) * (self.C @ np.asarray(x, dtype=float)) + self.D @ v
 
 
 class LinearSensor:

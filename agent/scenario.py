@@ -32,6 +32,7 @@ from .models import double_integrator
 
 Matrix = list[list[float]]
 Vector = list[float]
+Matrices = list[list[list[float]]]   #: one matrix per sensor
 
 
 class ScenarioError(ValueError):
@@ -63,7 +64,8 @@ class RunCfg:
 class TargetCfg:
     x0: Vector = field(default_factory=list)
     kind: Literal["normal", "intelligent"] = "normal"
-    model: Literal["double_integrator", "matrices"] = "double_integrator"
+    #: double_integrator (A, B from T), matrices (discrete A, B), continuous (ẋ = Ax + Bw, w held over a tick)
+    model: Literal["double_integrator", "matrices", "continuous"] = "double_integrator"
     dim: int = 2
     A: Matrix | None = None
     B: Matrix | None = None
@@ -75,8 +77,10 @@ class TargetCfg:
 @dataclass(frozen=True)
 class SensorsCfg:
     n: int = 0
-    C: Matrix | None = None
+    C: Matrix | Matrices | None = None   #: one q×m matrix, or one matrix per sensor
     R: Matrix | None = None
+    D: Matrix | Matrices | None = None   #: yᵢ = Cᵢx + Dᵢvᵢ, vᵢ ~ N(0, v_std² I) (instead of R)
+    v_std: float = 1.0
     positions: Matrix | None = None
     grid_rows: int = 2
     spacing: float = 8.0
@@ -89,7 +93,7 @@ class SensorsCfg:
 
 @dataclass(frozen=True)
 class EstimatorCfg:
-    name: Literal["minimax", "kalman", "hinf_switching"] = "minimax"
+    name: Literal["minimax", "kalman", "hinf_switching", "min_energy"] = "minimax"
     rounds: int = 1
     eta: str = "1/(dmax+1)"
     S: Matrix | None = None
@@ -103,6 +107,21 @@ class EstimatorCfg:
     comm_noise: Matrix | None = None
     lambda0: float | None = None
     resilient_f: int = 0  #: W-MSR: tolerate up to f Byzantine neighbours (0 = plain consensus)
+    # --- min_energy (Zamani & Ugrinovskii): SDP (29) design and filter (20)/(21)
+    edges: list[list[int]] | None = None     #: directed [i, j]: node i receives from node j
+    W: Matrix | Matrices | None = None       #: one matrix, or one per edge
+    F: Matrix | Matrices | None = None
+    P: str = "consensus"                     #: "consensus" = ½(𝐋 + 𝐋ᵀ) ⊗ I (reproduces Table I)
+    zbar_min: float = 0.0
+    margin: float = 1e-6
+    gamma2_factor: float = 1.1
+    centre: Literal["logmargin", "logdet"] = "logmargin"
+    solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
+    design_file: str | None = None
+    method: Literal["expm", "rk4"] = "expm"
+    substeps: int = 10
+    hold: Literal["model", "zoh"] = "model"
+    channel_noise_std: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -183,9 +202,20 @@ class Scenario:
         return self.target_matrices()[1]
 
     def target_matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """Discrete-time (A, B) of x⁺ = Ax + Bw over one tick (a continuous plant is discretised
+        exactly with w held over the tick: A = e^{A_c T}, B = ∫₀ᵀ e^{A_c s} ds B_c)."""
         t = self.target
         if t.model == "double_integrator":
             return double_integrator(self.run.T, t.dim)
+        if t.model == "continuous":
+            from scipy.linalg import expm
+
+            Ac, Bc = np.array(t.A, float), np.array(t.B, float)
+            m, p = Bc.shape
+            M = np.zeros((m + p, m + p))
+            M[:m, :m], M[:m, m:] = Ac, Bc
+            E = expm(M * self.run.T)
+            return E[:m, :m], E[:m, m:]
         return np.array(t.A, float), np.array(t.B, float)
 
     @property
@@ -195,15 +225,41 @@ class Scenario:
     @property
     def pos_dims(self) -> int:
         """Number of leading state components that are the target's position."""
-        return self.target.dim if self.target.model == "double_integrator" else int(np.array(self.C).shape[0])
+        if self.target.model == "double_integrator":
+            return self.target.dim
+        if self.target.model == "continuous":
+            return self.m  # a plant state (Chua circuit) is scored as a whole
+        return int(np.array(self.C).shape[0])
+
+    @property
+    def per_node_C(self) -> bool:
+        return np.ndim(self.sensors.C) == 3
 
     @property
     def C(self) -> np.ndarray:  # noqa: N802
-        return np.array(self.sensors.C, float)
+        """The common measurement matrix (sensor 0's when each sensor has its own)."""
+        return self.C_of(0)
+
+    def C_of(self, i: int) -> np.ndarray:  # noqa: N802
+        C = np.array(self.sensors.C, float)
+        return C[i] if C.ndim == 3 else C
+
+    def D_of(self, i: int) -> np.ndarray | None:  # noqa: N802
+        if self.sensors.D is None:
+            return None
+        D = np.array(self.sensors.D, float)
+        return D[i] if D.ndim == 3 else D
+
+    def R_of(self, i: int) -> np.ndarray:  # noqa: N802
+        """Measurement-noise covariance of sensor i: R, or v_std²·DᵢDᵢᵀ."""
+        D = self.D_of(i)
+        if D is not None:
+            return self.sensors.v_std ** 2 * D @ D.T
+        return np.array(self.sensors.R, float)
 
     @property
     def R(self) -> np.ndarray:  # noqa: N802
-        return np.array(self.sensors.R, float)
+        return self.R_of(0)
 
     @property
     def Qw(self) -> np.ndarray:  # noqa: N802
@@ -275,6 +331,8 @@ def _describe(tp: Any) -> str:
         return "a matrix (list of equal-length lists of numbers)"
     if tp == Vector:
         return "a list of numbers"
+    if tp == Matrices:
+        return "a list of matrices (one per sensor or edge)"
     if tp == list[list[int]]:
         return "a list of [i, j] integer pairs"
     return str(tp)
@@ -286,8 +344,13 @@ def _coerce(value: Any, tp: Any, src: str, key: str) -> Any:
     if origin in (types.UnionType, typing.Union):
         if value is None and type(None) in args:
             return None
-        inner = [a for a in args if a is not type(None)][0]
-        return _coerce(value, inner, src, key)
+        inner = [a for a in args if a is not type(None)]
+        if Matrices in inner and Matrix in inner:
+            # a list of matrices is three levels deep; a matrix two
+            deep = isinstance(value, list) and value and isinstance(value[0], list) and value[0] \
+                and isinstance(value[0][0], list)
+            return _coerce(value, Matrices if deep else Matrix, src, key)
+        return _coerce(value, inner[0], src, key)
     bad = ScenarioError(src, key, f"expected {_describe(tp)}, got {value!r}", f"write {key} as {_describe(tp)}")
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -309,6 +372,11 @@ def _coerce(value: Any, tp: Any, src: str, key: str) -> Any:
         if not isinstance(value, list):
             raise bad
         return [_coerce(v, float, src, f"{key}[{i}]") for i, v in enumerate(value)]
+    if tp == Matrices:
+        if not isinstance(value, list) or not value or not all(
+                isinstance(r, list) and r and all(isinstance(x, list) for x in r) for r in value):
+            raise bad
+        return [_coerce(M, Matrix, src, f"{key}[{i}]") for i, M in enumerate(value)]
     if tp == Matrix:
         if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
             raise bad
@@ -406,7 +474,8 @@ def validate(sc: Scenario) -> Scenario:
                                 "remove A and B, or set model = \"matrices\"")
     else:
         if t.A is None or t.B is None:
-            raise ScenarioError(src, "target.A" if t.A is None else "target.B", "is required when model = \"matrices\"")
+            raise ScenarioError(src, "target.A" if t.A is None else "target.B",
+                                f"is required when model = \"{t.model}\"")
         _shape(src, "target.A", t.A, (m, m), "m × m with m = len(x0)")
         if np.shape(t.B)[0] != m:
             raise ScenarioError(src, "target.B", f"expected {m} rows (m = len(x0)), got {np.shape(t.B)[0]}")
@@ -420,13 +489,35 @@ def validate(sc: Scenario) -> Scenario:
         es = t.estimate_source
         if es != "mean" and not (es.startswith("node:") and es[5:].isdigit() and int(es[5:]) < s.n):
             raise ScenarioError(src, "target.estimate_source", f"expected \"mean\" or \"node:<i>\" with i < {s.n}, got {es!r}")
-    if s.C is None or s.R is None:
+    if s.C is None or (s.R is None and s.D is None):
         raise ScenarioError(src, "sensors.C" if s.C is None else "sensors.R", "is required",
-                            "give the measurement matrix C (q × m) and noise covariance R (q × q)")
-    q = np.shape(s.C)[0]
-    _shape(src, "sensors.C", s.C, (q, m), f"q × m with m = {m}")
-    _shape(src, "sensors.R", s.R, (q, q), f"q × q with q = {q}")
-    _pd(src, "sensors.R", s.R)
+                            "give the measurement matrix C (q × m) and noise covariance R (q × q) — or D "
+                            "(yᵢ = Cᵢx + Dᵢvᵢ)")
+    if np.ndim(s.C) == 3:
+        if len(s.C) != s.n:
+            raise ScenarioError(src, "sensors.C", f"one matrix per sensor expected ({s.n}), got {len(s.C)}")
+        for i, Ci in enumerate(s.C):
+            if np.shape(Ci)[1] != m:
+                raise ScenarioError(src, f"sensors.C[{i}]", f"expected {m} columns (m = len(x0)), got {np.shape(Ci)[1]}")
+        if sc.estimator.name != "min_energy":
+            raise ScenarioError(src, "sensors.C", "per-sensor C is supported by the min_energy estimator only",
+                                "give one common C")
+    q = np.shape(sc.C)[0]
+    if np.ndim(s.C) == 2:
+        _shape(src, "sensors.C", s.C, (q, m), f"q × m with m = {m}")
+    if s.D is not None:
+        if np.ndim(s.D) == 3 and len(s.D) != s.n:
+            raise ScenarioError(src, "sensors.D", f"one matrix per sensor expected ({s.n}), got {len(s.D)}")
+        for i in range(s.n):
+            Di, Ci = sc.D_of(i), sc.C_of(i)
+            if Di.shape[0] != Ci.shape[0]:
+                raise ScenarioError(src, "sensors.D", f"sensor {i}: D must have as many rows as C ({Ci.shape[0]})")
+            _pd(src, "sensors.D", Di @ Di.T)
+        if not s.v_std > 0:
+            raise ScenarioError(src, "sensors.v_std", f"must be > 0, got {s.v_std}")
+    else:
+        _shape(src, "sensors.R", s.R, (q, q), f"q × q with q = {q}")
+        _pd(src, "sensors.R", s.R)
     if s.positions is not None:
         _shape(src, "sensors.positions", s.positions, (s.n, np.shape(s.positions)[1]), "n rows")
         if np.shape(s.positions)[1] not in (1, 2, 3):
@@ -462,6 +553,29 @@ def validate(sc: Scenario) -> Scenario:
                                 "add S, or use name = \"kalman\" (the S → ∞ case)")
         _shape(src, "estimator.S", e.S, (q, q), f"q × q with q = {q}")
         _pd(src, "estimator.S", e.S)
+    if e.name == "min_energy":
+        if e.rounds != 1:
+            raise ScenarioError(src, "estimator.rounds", "the min_energy filter exchanges once per tick", "rounds = 1")
+        if not e.edges:
+            raise ScenarioError(src, "estimator.edges", "the min_energy design needs the directed edge set",
+                                "edges = [[i, j], …] (node i receives from node j)")
+        for ei, (a, b) in enumerate(e.edges):
+            if not (0 <= a < s.n and 0 <= b < s.n) or a == b:
+                raise ScenarioError(src, f"estimator.edges[{ei}]", f"[{a}, {b}] must join two different sensors",
+                                    f"use ids 0 … {s.n - 1}")
+        if e.W is None or e.F is None:
+            raise ScenarioError(src, "estimator.W" if e.W is None else "estimator.F", "is required by min_energy")
+        if e.P != "consensus":
+            raise ScenarioError(src, "estimator.P", f"only \"consensus\" is supported, got {e.P!r}")
+        if not e.gamma2_factor > 1:
+            raise ScenarioError(src, "estimator.gamma2_factor", "Theorem 2 needs γ² > γ*²", "e.g. 1.1")
+        if e.substeps < 1:
+            raise ScenarioError(src, "estimator.substeps", "must be ≥ 1")
+        if e.zbar_min < 0 or not e.margin > 0 or e.channel_noise_std < 0:
+            raise ScenarioError(src, "estimator.zbar_min", "zbar_min ≥ 0, margin > 0 and channel_noise_std ≥ 0")
+        if t.model != "continuous":
+            raise ScenarioError(src, "target.model", "the min_energy filter runs on a continuous-time plant",
+                                "model = \"continuous\"")
     if e.name == "hinf_switching":
         if e.R_design is not None:
             _shape(src, "estimator.R_design", e.R_design, (q, q), "design weight R of ARE (9)")

@@ -227,11 +227,13 @@ class Meas(Message):
     y: np.ndarray = field(default_factory=lambda: np.zeros(0))
     b: float = 1.0
     pos: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    v: np.ndarray | None = None   #: the measurement disturbance drawn (simulation ground truth), if known
 
     @classmethod
     def _fields_from_wire(cls, d: dict) -> dict:
+        v = d.get("v")
         return dict(t=_float(d.get("t"), "t"), y=_dec_array(d.get("y"), ndim=(1,)), b=_float(d.get("b"), "b"),
-                    pos=_dec_array(d.get("pos"), ndim=(1,)))
+                    pos=_dec_array(d.get("pos"), ndim=(1,)), v=None if v is None else _dec_array(v, ndim=(1,)))
 
 
 @dataclass
@@ -263,9 +265,14 @@ class Estimate(Message):
     x_next: np.ndarray = field(default_factory=lambda: np.zeros(0))
     P: np.ndarray | None = None
     name: str = ""
+    aux: dict[str, np.ndarray] = field(default_factory=dict)  #: estimator diagnostics (e.g. channel noise)
 
     @classmethod
     def _fields_from_wire(cls, d: dict) -> dict:
+        aux = d.get("aux", {})
+        if not isinstance(aux, dict) or len(aux) > MAX_PAYLOAD_ENTRIES:
+            raise WireError("bad_field", "aux must be a map of at most 32 arrays")
+        aux = {_str(k, "aux key", 64): _dec_array(v) for k, v in aux.items()}
         x = _dec_array(d.get("x"), ndim=(1,))
         xn = _dec_array(d.get("x_next"), ndim=(1,))
         if xn.shape != x.shape:
@@ -274,7 +281,7 @@ class Estimate(Message):
         P = None if P is None else _dec_array(P, ndim=(2,))
         if P is not None and P.shape != (x.size, x.size):
             raise WireError("bad_shape", "P must be len(x) × len(x)")
-        return dict(x=x, x_next=xn, P=P, name=_str(d.get("name", ""), "name", 64))
+        return dict(x=x, x_next=xn, P=P, name=_str(d.get("name", ""), "name", 64), aux=aux)
 
 
 @dataclass
@@ -284,6 +291,7 @@ class State(Message):
     TYPE: ClassVar[str] = "state"
     pos: np.ndarray = field(default_factory=lambda: np.zeros(0))
     vel: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    w: np.ndarray | None = None   #: the target's process disturbance over tick k (simulation ground truth)
 
     @classmethod
     def _fields_from_wire(cls, d: dict) -> dict:
@@ -291,7 +299,8 @@ class State(Message):
         vel = _dec_array(d.get("vel"), ndim=(1,))
         if pos.shape != vel.shape or pos.size > 3:
             raise WireError("bad_shape", "pos and vel must be equal-length vectors of dimension ≤ 3")
-        return dict(pos=pos, vel=vel)
+        w = d.get("w")
+        return dict(pos=pos, vel=vel, w=None if w is None else _dec_array(w, ndim=(1,)))
 
 
 @dataclass
@@ -462,7 +471,7 @@ def from_json(d: dict) -> Message:
     arrays = _array_fields(cls)
     w: dict[str, Any] = {}
     for k, v in d.items():
-        if k == "payload" and isinstance(v, dict):
+        if k in ("payload", "aux") and isinstance(v, dict):
             w[k] = {pk: _enc_array(np.array(pv, dtype=float)) for pk, pv in v.items()}
         elif k in arrays and v is not None:
             w[k] = _enc_array(np.array(v, dtype=float))
@@ -484,7 +493,7 @@ def json_schema(cls: type[Message]) -> dict:
     props: dict[str, Any] = {"type": {"type": "string", "const": cls.TYPE}}
     for f in fields(cls):
         h = str(hints[f.name])
-        if f.name == "payload":
+        if f.name in ("payload", "aux"):
             props[f.name] = {"type": "object", "additionalProperties": {"type": "array"}}
         elif "ndarray" in h:
             props[f.name] = {"type": ["array", "null"] if "None" in h else "array"}

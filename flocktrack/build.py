@@ -24,6 +24,8 @@ def design(sc: Scenario) -> dict[str, Any]:
     """Graph-wide, pre-run design parameters handed to every sensor (JSON-serialisable)."""
     e = sc.estimator
     out: dict[str, Any] = {}
+    if e.name == "min_energy":
+        out["min_energy"] = min_energy_design(sc).to_dict()
     if e.name == "hinf_switching":
         from agent.estimators.hinf_switching import constant_gain, tmsee_lower_bound
 
@@ -48,6 +50,40 @@ def design(sc: Scenario) -> dict[str, Any]:
             out["tmsee_lower"] = np.asarray(
                 tmsee_lower_bound(sc.A, sc.C, Qw, Rn, e.gamma, H_seq, Z0), float)[: sc.run.ticks].tolist()
     return out
+
+
+def min_energy_design(sc: Scenario):
+    """The SDP (29) design of Zamani & Ugrinovskii for the scenario: loaded from estimator.design_file
+    (checked against the scenario's problem data) or solved now (supremum γ*², then a well-centred
+    point at γ² = gamma2_factor·γ*² that the filters run on)."""
+    import json
+    from pathlib import Path
+
+    from agent.estimators.min_energy import MinEnergyDesign, design_network, make_problem
+
+    e, s = sc.estimator, sc.sensors
+    Cs = [sc.C_of(i) for i in range(s.n)]
+    Ds = [sc.D_of(i) for i in range(s.n)]
+    edges = [tuple(x) for x in e.edges]
+    Ac, Bc = np.array(sc.target.A, float), np.array(sc.target.B, float)
+    W = np.array(e.W, float)
+    F = np.array(e.F, float)
+    W = list(W) if W.ndim == 3 else W
+    F = list(F) if F.ndim == 3 else F
+    if e.design_file:
+        path = Path(e.design_file)
+        if not path.is_absolute():
+            path = Path(sc.source).parent / path
+        dsg = MinEnergyDesign.from_dict(json.loads(path.read_text()))
+        prob = make_problem(Ac, Bc, Cs, Ds, W, F, edges, P=e.P)
+        if not dsg.problem.matches(prob):
+            from agent.scenario import ScenarioError
+
+            raise ScenarioError(sc.source, "estimator.design_file", f"{path} was designed for other problem data",
+                                "re-run `flocktrack design` for this scenario")
+        return dsg
+    return design_network(Ac, Bc, Cs, Ds, W, F, edges, P=e.P, zbar_min=e.zbar_min, margin=e.margin,
+                          solver=e.solver, gamma2_factor=e.gamma2_factor, centre=e.centre)
 
 
 @dataclass

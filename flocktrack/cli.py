@@ -125,6 +125,32 @@ def cmd_fault(args) -> int:
     return 0
 
 
+def cmd_design(args) -> int:
+    """Solve (and store) the pre-run design of a scenario (the min_energy SDP (29); Chen's gain K)."""
+    import json as _json
+
+    from .build import design as make_design
+
+    sc = apply_overrides(args.scenario, args.set or [])
+    try:
+        d = make_design(sc)
+    except Exception as exc:  # DesignError (infeasible / inaccurate) and friends: say which, no numbers
+        print(f"error: {args.scenario}: design failed: {exc}", file=sys.stderr)
+        return 1
+    if sc.estimator.name == "min_energy":
+        out = d["min_energy"]
+        g = out.get("gamma2"), out.get("gamma2_star")
+        print(f"{args.scenario}: γ*² = {g[1]:.6g} (supremum), filters designed at γ² = {g[0]:.6g}")
+    else:
+        out = d
+        print(f"{args.scenario}: {', '.join(sorted(d)) or 'nothing to design'}")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(_json.dumps(out, indent=1))
+    print(f"wrote {args.out}" + (f" — use it with `design_file = \"{args.out}\"` in [estimator]"
+                                 if sc.estimator.name == "min_energy" else ""))
+    return 0
+
+
 def cmd_metrics(args) -> int:
     from .record import metrics_from_recording
 
@@ -169,6 +195,11 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
     r.add_argument("--out", required=True)
     r.set_defaults(fn=cmd_run)
+    dg = sub.add_parser("design", help="solve and store a scenario's pre-run design (min_energy SDP, Chen's K)")
+    dg.add_argument("scenario")
+    dg.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
+    dg.add_argument("--out", required=True)
+    dg.set_defaults(fn=cmd_design)
     fl = sub.add_parser("fault", help="send a control/fault command to a running flock")
     fl.add_argument("verb", help="pause, resume, step, speed, kill, restart, link_drop, link_heal, link_loss, "
                                  "partition, heal, outlier_burst")

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.wire import Estimate, Message, State, Tick, Truth
+from agent.wire import Estimate, Meas, Message, State, Tick, Truth
 from topology.graph import algebraic_connectivity, is_connected
 
 
@@ -36,16 +36,20 @@ def summary_identity(sc) -> dict:
 
 class MetricsCollector:
     def __init__(self, n: int, ticks: int, pos_dims: int, burn_in: int = 0,
-                 tmsee_lower: Sequence[float] | None = None):
+                 tmsee_lower: Sequence[float] | None = None, design: dict | None = None, T: float | None = None):
         self.n, self.ticks, self.d, self.burn_in = int(n), int(ticks), int(pos_dims), int(burn_in)
         self.tmsee_lower = None if tmsee_lower is None else [float(v) for v in tmsee_lower]
         self._truth: dict[int, np.ndarray] = {}
         self._est: dict[int, dict[int, np.ndarray]] = {}
         self._ticks: dict[int, Tick] = {}
         self._target_pos: dict[int, np.ndarray] = {}
+        self.design, self.T = design or {}, T
+        self._w: dict[int, np.ndarray] = {}
+        self._v: dict[int, dict[int, np.ndarray]] = {}
+        self._eps: dict[int, dict[int, dict[str, np.ndarray]]] = {}
 
     def subscribe(self, bus) -> None:
-        for pat in ("world/tick", "target/truth", "agent/*/estimate", "target/state"):
+        for pat in ("world/tick", "target/truth", "agent/*/estimate", "target/state", "agent/*/meas"):
             bus.subscribe(pat, self.ingest)
 
     def ingest(self, key: str, msg: Message) -> None:
@@ -55,8 +59,14 @@ class MetricsCollector:
             self._truth[msg.k] = msg.x
         elif isinstance(msg, Estimate) and key.startswith("agent/"):
             self._est.setdefault(msg.k, {})[msg.src] = msg.x
+            if msg.aux:
+                self._eps.setdefault(msg.k, {})[msg.src] = msg.aux
         elif isinstance(msg, State) and key == "target/state":
             self._target_pos[msg.k] = msg.pos
+            if msg.w is not None:
+                self._w[msg.k] = msg.w
+        elif isinstance(msg, Meas) and msg.v is not None:
+            self._v.setdefault(msg.k, {})[msg.src] = msg.v
 
     # ------------------------------------------------------------------ per tick
     def rows(self) -> list[dict]:
@@ -144,9 +154,39 @@ class MetricsCollector:
         if self.tmsee_lower is not None:
             s["tmsee_lower"] = [r.get("tmsee_lower") for r in rows]
         s["lambda2"] = [r.get("lambda2") for r in rows]
+        if "min_energy" in self.design:
+            s["hinf"] = self.hinf_report()
         if extra:
             s.update(extra)
         return s
+
+    def hinf_report(self) -> dict | None:
+        """Zamani & Ugrinovskii: the local H∞ ratios (6) per node and the network ratio (5) measured on
+        the run (disturbances w, vᵢ, εᵢⱼ as recorded, tick grid), beside the designed γ̄ᵢ² and γ²."""
+        from agent.estimators.min_energy import MinEnergyDesign, performance_report
+
+        dsg = MinEnergyDesign.from_dict(self.design["min_energy"])
+        ks = [k for k in range(self.ticks) if k in self._truth and len(self._est.get(k, {})) == self.n]
+        if len(ks) < 2 or ks != list(range(len(ks))) or self.T is None:
+            return None
+        K = len(ks) - 1
+        E = np.array([[self._est[k][i] - self._truth[k] for i in range(self.n)] for k in ks])
+        m = len(self._w.get(0, [0.0]))
+        w = np.array([self._w.get(k, np.zeros(m)) for k in range(K)])
+        v = [np.array([self._v.get(k, {}).get(i, np.zeros(1)) for k in range(K)]) for i in range(self.n)]
+        eps: dict[tuple[int, int], np.ndarray] = {}
+        for (i, j) in dsg.problem.edges:
+            key = f"eps_{j}"
+            rows = [self._eps.get(k, {}).get(i, {}).get(key) for k in range(K)]
+            if all(r is not None for r in rows):
+                eps[(i, j)] = np.array(rows)
+        rep = performance_report(dsg, E, -E[0], w, v, eps, self.T)
+        return {"gamma2_design": float(dsg.gamma2), "gamma2_star": float(dsg.gamma2_star),
+                "network_ratio": rep["network"]["ratio"], "network_bound": rep["network"]["bound"],
+                "node_ratio": [nd["ratio"] for nd in rep["nodes"]],
+                "node_ratio_beta": [nd["ratio_beta"] for nd in rep["nodes"]],
+                "node_bound": [nd["bound"] for nd in rep["nodes"]],
+                "iqc_holds": [bool(nd["iqc_holds"]) for nd in rep["nodes"]]}
 
     def write(self, out_dir: str | Path, extra: dict | None = None) -> dict:
         out = Path(out_dir)

@@ -15,7 +15,7 @@ from ..scenario import Scenario
 from ..seeding import rng_for
 from .base import Estimator
 
-NAMES = ("minimax", "kalman", "hinf_switching")
+NAMES = ("minimax", "kalman", "hinf_switching", "min_energy")
 
 
 def make_estimator(sc: Scenario, i: int, design: Mapping[str, Any] | None = None) -> Estimator:
@@ -41,4 +41,13 @@ def make_estimator(sc: Scenario, i: int, design: Mapping[str, Any] | None = None
         comm = None if e.comm_noise is None else np.array(e.comm_noise, float)
         return HinfSwitchingEstimator(sc.A, sc.C, K, x0, comm_noise_cov=comm,
                                       rng=rng_for(sc.run.seed, "agent", i, "comm_noise"), resilient_f=e.resilient_f)
+    if e.name == "min_energy":
+        from .min_energy import MinEnergyDesign, MinEnergyNode
+
+        if design is None or "min_energy" not in design:
+            raise ValueError("min_energy needs the SDP design (29), computed by the runtime before the run")
+        dsg = MinEnergyDesign.from_dict(design["min_energy"])
+        return MinEnergyNode.from_design(dsg, i, x0=x0, substeps=e.substeps, method=e.method, hold=e.hold,
+                                         rng=rng_for(sc.run.seed, "agent", i, "channel_noise"),
+                                         channel_noise_std=e.channel_noise_std)
     raise ValueError(f"unknown estimator {e.name!r}; known: {', '.join(NAMES)}")

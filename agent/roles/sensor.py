@@ -334,7 +334,9 @@ class SensorRole(Role):
             y = y + self._burst_mag * d / max(np.linalg.norm(d), 1e-12)
             self._burst_ticks -= 1
             self.counters["outliers_injected"] += 1
-        self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy()))
+        v = getattr(self.sensor, "last_v", None)
+        self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy(),
+                                                  v=None if v is None else np.array(v, float)))
         self._nbrs = self._neighbours()
         if self._joining:
             src = [j for j in self._nbrs if j in self._peer_est] or sorted(self._peer_est)
@@ -391,9 +393,11 @@ class SensorRole(Role):
         self.est.finish()
         x_next = self.est.x
         P = self.est.P
+        eps = getattr(self.est, "last_channel_noise", None) or {}
         self.publish(f"agent/{self.i}/estimate",
                      Estimate(src=self.i, k=k, x=self._prior, x_next=x_next.copy(),
-                              P=None if P is None else np.array(P, float), name=type(self.est).__name__))
+                              P=None if P is None else np.array(P, float), name=type(self.est).__name__,
+                              aux={f"eps_{j}": np.asarray(e, float) for j, e in sorted(eps.items())}))
         if self.controller is not None:
             d = self.pos_dims
             tick = self._ticks[k]

@@ -149,5 +149,7 @@ class TargetRole(Role):
         x = np.asarray(self.model.x, float)
         d = self.pos_dims
         vel = x[d:2 * d] if x.size >= 2 * d else np.zeros(d)
-        self.publish("target/state", State(k=self.k, pos=x[:d].copy(), vel=vel.copy()))
+        w = getattr(self.model, "last_w", None)
+        self.publish("target/state", State(k=self.k, pos=x[:d].copy(), vel=vel.copy(),
+                                           w=None if w is None else np.atleast_1d(np.asarray(w, float))))
         self.k += 1
