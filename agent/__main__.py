@@ -29,7 +29,7 @@ def role_deadline(sc, mode: str, role: str) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m agent")
-    ap.add_argument("role", choices=["sensor", "target"])
+    ap.add_argument("role", choices=["sensor", "target", "fusion"])
     ap.add_argument("--id", type=int, default=0)
     ap.add_argument("--scenario", required=True)
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447")
@@ -53,6 +53,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: --id {args.id} is not a sensor of {args.scenario} (0..{sc.sensors.n - 1})", file=sys.stderr)
             return 2
         role, name = build_sensor(sc, args.id, design, rejoin=args.rejoin), f"agent/{args.id}"
+    elif args.role == "fusion":
+        from .assemble import build_fusion
+
+        if sc.uav is None:
+            print(f"error: {args.scenario} has no fusion solver ([uavs]/[fusion] tables)", file=sys.stderr)
+            return 2
+        role, name = build_fusion(sc), "fusion/0"
     else:
         role, name = build_target(sc), "target/0"
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)

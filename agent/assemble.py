@@ -19,8 +19,38 @@ from .scenario import Scenario
 from .seeding import rng_for
 
 
+_STREAMS: dict = {}
+
+
+def uav_stream(sc: Scenario):
+    """The seeded measurement stream of a UAV scenario (identical in every process that asks)."""
+    key = (sc.source, sc.run.seed, repr(sc.uav))
+    if key not in _STREAMS:
+        _STREAMS.clear()
+        _STREAMS[key] = sc.uav.sim().generate(sc.uav.duration, rng_for(sc.run.seed, "uav_stream"))
+    return _STREAMS[key]
+
+
+def build_fusion(sc: Scenario):
+    """The fusion role of a UAV scenario: sum-of-norms + baselines on every agent's measurements."""
+    from .estimators.sum_of_norms import RelativeMeasurement
+    from .roles.fusion import FusionRole
+
+    u = sc.uav.uav
+    R, G = np.eye(2) * u.sigma_rel ** 2, np.eye(2) * u.sigma_gps ** 2
+
+    def to_record(m):
+        return RelativeMeasurement(m.src + 1, m.t, m.y, R, m.pos, G)
+
+    return FusionRole(sc.run.ticks, sc.uav.make_estimators(), to_record)
+
+
 def build_target(sc: Scenario) -> TargetRole:
     t = sc.target
+    if sc.uav is not None:
+        from .models_uav import StreamTarget
+
+        return TargetRole(sc.run.ticks, StreamTarget(uav_stream(sc), sc.run.T), False, 2, T=sc.run.T)
     x0 = np.array(t.x0, float)
     rng = rng_for(sc.run.seed, "target", 0, "process_noise")
     if t.kind == "intelligent":
@@ -32,7 +62,11 @@ def build_target(sc: Scenario) -> TargetRole:
     return TargetRole(sc.run.ticks, model, t.kind == "intelligent", sc.pos_dims, t.estimate_source, T=sc.run.T)
 
 
-def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rejoin: bool = False) -> SensorRole:
+def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rejoin: bool = False):
+    if sc.uav is not None:
+        from .roles.uav import UavRole
+
+        return UavRole(i, sc.run.ticks, sc.run.T, uav_stream(sc))
     est = make_estimator(sc, i, design or {})
     ctrl = None
     if sc.sensors.motion == "flocking":

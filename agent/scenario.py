@@ -93,7 +93,7 @@ class SensorsCfg:
 
 @dataclass(frozen=True)
 class EstimatorCfg:
-    name: Literal["minimax", "kalman", "hinf_switching", "min_energy"] = "minimax"
+    name: Literal["minimax", "kalman", "hinf_switching", "min_energy", "none"] = "minimax"
     rounds: int = 1
     eta: str = "1/(dmax+1)"
     S: Matrix | None = None
@@ -191,6 +191,8 @@ class Scenario:
     control: ControlCfg = field(default_factory=ControlCfg)
     faults: FaultsCfg = field(default_factory=FaultsCfg)
     source: str = "<scenario>"
+    #: García Carrillo et al.'s UAV/fusion world (agent.models_uav.CarrilloScenario) when the file has [uavs]
+    uav: Any = None
 
     # ------------------------------------------------------------------ derived model matrices
     @property
@@ -664,8 +666,52 @@ def _validate_faults(sc: Scenario) -> None:
                                 "measurement component)")
 
 
+def parse_uav_scenario(data: dict, source: str) -> Scenario:
+    """A fusion scenario (``[uavs]``, ``[fusion]``, … as in scenarios/carrillo_uav.toml): the UAV world of
+    García Carrillo et al. on the tick runtime — UAV agents without a distributed estimator (their
+    measurements go to the fusion role), a target replayed from the seeded simulation, no links."""
+    from .models_uav import config_from_tables
+
+    d = {k: v for k, v in data.items() if k != "run"}
+    run = dict(data.get("run", {}))
+    rc_keys = {"name", "T", "mode", "deadline_s", "speed", "seed", "duration", "ticks", "burn_in"}
+    for k in run:
+        if k not in rc_keys:
+            raise ScenarioError(source, f"run.{k}", "unknown key", f"use one of: {', '.join(sorted(rc_keys))}")
+    T = run.get("T", 0.05)
+    duration = run.get("duration", 100.0)
+    if isinstance(run.get("ticks"), int) and isinstance(T, (int, float)):
+        duration = run["ticks"] * float(T)  # --ticks N: the first N·T seconds
+    try:
+        cfg = config_from_tables({"run": {"seed": run.get("seed", 1), "duration": duration}, **d})
+    except (ValueError, TypeError) as exc:
+        msg = str(exc)
+        key = msg[1:msg.index("]")] if msg.startswith("[") and "]" in msg else "-"
+        raise ScenarioError(source, key, msg, "see scenarios/carrillo_uav.toml for every key") from None
+    T = float(T)
+    if not T > 0 or not cfg.duration > 0:
+        raise ScenarioError(source, "run.T", "T and duration must be > 0")
+    n = cfg.uav.n
+    sigma = cfg.uav.sigma_rel
+    sc = Scenario(
+        run=RunCfg(name=str(run.get("name", "carrillo_uav")), ticks=int(math.ceil(cfg.duration / T)), T=T,
+                   seed=cfg.seed, mode=run.get("mode", "lockstep"), deadline_s=float(run.get("deadline_s", 5.0)),
+                   speed=float(run.get("speed", 1.0))),
+        target=TargetCfg(x0=[0.0, 0.0, 0.0, 0.0], model="double_integrator", dim=2),
+        sensors=SensorsCfg(n=n, C=[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], R=[[sigma ** 2, 0.0], [0.0, sigma ** 2]],
+                           positions=[[0.0, 0.0]] * n, motion="static"),
+        estimator=EstimatorCfg(name="none", rounds=0),
+        topology=TopologyCfg(kind="schedule", dwell_ticks=1, graphs=[GraphCfg(edges=[], b=[1.0] * n)]),
+        source=source, uav=cfg)
+    if sc.run.mode not in ("lockstep", "realtime"):
+        raise ScenarioError(source, "run.mode", f"expected \"lockstep\" or \"realtime\", got {sc.run.mode!r}")
+    return validate(sc)
+
+
 def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     """Build and validate a scenario from an already-parsed TOML mapping."""
+    if "uavs" in data:
+        return parse_uav_scenario(data, source)
     for k in data:
         if k not in _SECTIONS:
             raise ScenarioError(source, k, "unknown table", f"use one of: {', '.join(_SECTIONS)}")

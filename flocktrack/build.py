@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.assemble import build_sensor, build_target
+from agent.assemble import build_fusion, build_sensor, build_target
 from agent.roles.common import Role
 from agent.roles.sensor import SensorRole
 from agent.roles.target import TargetRole
@@ -92,11 +92,14 @@ class Roles:
     target: TargetRole
     sensors: list[SensorRole]
     design: dict[str, Any] = field(default_factory=dict)
+    extra: list[Role] = field(default_factory=list)   #: fusion
 
     def all(self) -> list[Role]:
-        return [self.world, self.target, *self.sensors]
+        return [self.world, self.target, *self.sensors, *self.extra]
 
 
 def build_roles(sc: Scenario, dsg: dict[str, Any] | None = None) -> Roles:
     dsg = design(sc) if dsg is None else dsg
-    return Roles(build_world(sc), build_target(sc), [build_sensor(sc, i, dsg) for i in range(sc.sensors.n)], dsg)
+    extra = [build_fusion(sc)] if sc.uav is not None else []
+    return Roles(build_world(sc), build_target(sc), [build_sensor(sc, i, dsg) for i in range(sc.sensors.n)], dsg,
+                 extra)

@@ -4,6 +4,10 @@
     flocktrack run SCENARIO [--transport zenoh|inproc] [--mode lockstep|realtime] [--ticks N] [--seed S]
                             [--estimator NAME] [--rounds R] [--set section.key=value ...]
                             [--restart never|on-failure] --out DIR
+    flocktrack design SCENARIO --out FILE
+    flocktrack fault VERB [name=value ...] --run RUN --connect ENDPOINT
+    flocktrack compose SCENARIO [--out DIR]
+    flocktrack sweep SCENARIO --grid KEY=V1,V2 ... --seeds S --out DIR
     flocktrack metrics RECORDING --out DIR
     flocktrack replay RECORDING [--connect ENDPOINT] [--speed X]
 """
@@ -219,6 +223,15 @@ def main(argv: list[str] | None = None) -> int:
     rp.add_argument("--dashboard", action="store_true", help="show the recording in the dashboard (time slider)")
     rp.add_argument("--dashboard-port", type=int, default=8080)
     rp.set_defaults(fn=cmd_replay)
+    from . import compose as _compose
+
+    _compose.register(sub)
+    try:
+        from . import experiment as _experiment
+
+        _experiment.register(sub)
+    except ImportError:  # pragma: no cover - optional during development
+        pass
     args = ap.parse_args(argv)
     try:
         return args.fn(args)

