@@ -1,0 +1,12 @@
+"""The flocktrack dashboard: a Viser web page showing the flock, the estimates, the links and the error
+traces of a run, live (a read-only subscriber to ``ft/<run>/**`` that writes only ``control/**``) or from a
+recording (time slider).
+
+* :mod:`dashboards.state` — a pure model of what is shown, fed message by message (testable alone);
+* :mod:`dashboards.plots` — data → figures (batched scene arrays, uPlot panels, a static PNG);
+* :mod:`dashboards.live`  — the Viser UI, the live loop and the replay;
+* ``python -m dashboards`` — the process the launcher spawns (``--run/--connect``) or the replay
+  (``--recording``).
+
+Floors: imports only :mod:`agent` (never ``flocktrack`` or ``topology``).
+"""

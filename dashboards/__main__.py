@@ -1,0 +1,74 @@
+"""python -m dashboards — the live dashboard of a run, or a recording with a time slider.
+
+Live (spawned by ``flocktrack run … --dashboard`` as ``dashboard/0``)::
+
+    python -m dashboards --run RUN --connect tcp/127.0.0.1:7447 --port 8080 --scenario RUN_DIR/scenario.toml
+
+Replay (``flocktrack replay FILE --dashboard``)::
+
+    python -m dashboards --recording runs/demo/recording.mcap --port 8080
+
+Static picture of a recording (no server; the last tick, or ``--tick K``)::
+
+    python -m dashboards --recording runs/demo/recording.mcap --png docs/summary.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+
+# one consumer thread: BLAS worker threads (λ₂ of a 100-node Laplacian) would only contend with the flock
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m dashboards", description=__doc__.split("\n")[0])
+    ap.add_argument("--run", help="run name (key prefix ft/<run>/); live mode")
+    ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (live)")
+    ap.add_argument("--scenario", help="the run's scenario TOML (live; design.json beside it is used if present)")
+    ap.add_argument("--design", help="pre-run design JSON (TMSEE lower bound); default: beside the scenario")
+    ap.add_argument("--recording", help="an MCAP recording to show with a time slider (replay mode)")
+    ap.add_argument("--port", type=int, default=8080, help="HTTP/websocket port of the page")
+    ap.add_argument("--host", default="127.0.0.1", help="interface to serve on (0.0.0.0 in containers)")
+    ap.add_argument("--config", default=None, help="Zenoh json5 config for this process")
+    ap.add_argument("--exit-on-end", action="store_true", help="live: exit one second after world/end")
+    ap.add_argument("--play", action="store_true", help="replay: start playing at once")
+    ap.add_argument("--png", help="replay: write a static PNG of the recording and exit (no server)")
+    ap.add_argument("--tick", type=int, default=None, help="--png: the tick to draw (default: the last)")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+
+    from .live import replay_model_from_file, run_live, run_replay
+
+    if args.recording:
+        if args.png:
+            from .plots import save_static_png
+
+            model = replay_model_from_file(args.recording)
+            k = model.last if args.tick is None else args.tick
+            save_static_png(args.png, model.series(k), model.snapshot(k), model.info.n,
+                            title=f"{model.info.name} · {model.info.estimator}", link_range=model.info.link_range)
+            print(f"wrote {args.png} (tick {model.seek(k)})")
+            return 0
+        return run_replay(args.recording, args.port, host=args.host, stop_event=stop, autoplay=args.play)
+    if not (args.run and args.scenario):
+        ap.error("live mode needs --run and --scenario (or give --recording)")
+    from .state import RunInfo
+
+    info = RunInfo.from_files(args.scenario, args.design)
+    return run_live(args.run, args.connect, args.port, info, host=args.host, config_file=args.config,
+                    exit_on_end=args.exit_on_end, stop_event=stop)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

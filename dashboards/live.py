@@ -1,0 +1,732 @@
+"""The Viser web dashboard: a read-only subscriber to ``ft/<run>/**`` that writes only ``control/**``.
+
+Live (``python -m dashboards --run R --connect EP --port P --scenario FILE``): the bus delivers on this
+process's thread into a :class:`~dashboards.state.DashboardState`; at most every ``scene_period`` seconds
+the scene is redrawn from a snapshot (a few batched objects: one point cloud for all sensors, one
+line-segment set for all links, …) and every ``plot_period`` seconds the uPlot panels and the status
+text. GUI callbacks run on Viser's threads; they only set fields and queue control messages, which this
+thread publishes — the bus and the state are touched by one thread only.
+
+Replay (``python -m dashboards --recording FILE --port P``): the recording is read with ``mcap`` and
+:func:`agent.wire.from_json`, fed once through a :class:`~dashboards.state.ReplayModel`, and shown with a
+time slider over its ticks (play / pause / playback speed).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from agent import wire
+
+from . import plots
+from .state import DashboardState, ReplayModel, RunInfo, Snapshot
+
+log = logging.getLogger(__name__)
+
+#: One Zenoh subscription for everything: samples of *different* subscriptions of one session may be
+#: delivered out of order (measured: an estimate of tick k after the world's tick k+2), samples of one
+#: subscription keep the publication order — and the model relies on it to score a tick in time.
+SUBSCRIPTION = "**"
+CONTROL_VERBS = ("pause", "resume", "step", "speed", "kill", "restart", "link_drop", "link_heal", "link_loss",
+                 "partition", "heal", "outlier_burst")
+
+
+# ============================================================================ recordings (replay)
+
+@dataclass
+class LoadedRecording:
+    metadata: dict[str, str]
+    messages: list[tuple[str, wire.Message | None, int]]  # None: counted only
+    complete: bool = True
+    rejected: int = 0
+
+
+def decoded_key(topic: str) -> bool:
+    """Keys decoded and fed to the model (world, truth, estimates, states, fusion, control); the others —
+    exchange payloads and measurements, the bulk of the traffic — are only counted."""
+    parts = topic.split("/")
+    if parts[0] == "agent":
+        return len(parts) == 3 and parts[2] in ("estimate", "state")
+    if parts[0] == "target":
+        return topic == "target/truth"
+    return parts[0] in ("world", "fusion", "control")
+
+
+def load_recording(path: str | Path) -> LoadedRecording:
+    """A flocktrack MCAP recording: metadata and the messages in recording order (by sequence number).
+    Exchange payloads and measurements are not decoded (the dashboard only counts them). A truncated
+    file yields what its readable records hold (``complete=False``)."""
+    from mcap.reader import make_reader
+
+    path = Path(path)
+    meta: dict[str, str] = {}
+    rows: list[tuple[int, str, bytes | None, int]] = []
+    complete = True
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            for m in reader.iter_metadata():
+                if m.name == "flocktrack":
+                    meta.update(m.metadata)
+            for _schema, channel, message in reader.iter_messages(log_time_order=False):
+                rows.append((message.sequence, channel.topic,
+                             message.data if decoded_key(channel.topic) else None, message.log_time))
+    except Exception:  # no summary / truncated: stream the records that are there
+        complete = False
+        rows, meta = _stream_records(path)
+    rows.sort(key=lambda r: r[0])
+    out: list[tuple[str, wire.Message | None, int]] = []
+    rejected = 0
+    for _seq, topic, data, t in rows:
+        if data is None:
+            out.append((topic, None, t))
+            continue
+        try:
+            out.append((topic, wire.from_json(json.loads(data)), t))
+        except (wire.WireError, ValueError):
+            rejected += 1
+    return LoadedRecording(meta, out, complete, rejected)
+
+
+def _stream_records(path: Path):
+    from mcap.records import Channel, Chunk, Message, Metadata
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    channels: dict[int, str] = {}
+    rows: list = []
+    meta: dict[str, str] = {}
+
+    def take(rec) -> None:
+        if isinstance(rec, Channel):
+            channels[rec.id] = rec.topic
+        elif isinstance(rec, Message) and rec.channel_id in channels:
+            topic = channels[rec.channel_id]
+            rows.append((rec.sequence, topic, rec.data if decoded_key(topic) else None, rec.log_time))
+        elif isinstance(rec, Metadata) and rec.name == "flocktrack":
+            meta.update(rec.metadata)
+
+    with open(path, "rb") as f:
+        try:
+            for rec in StreamReader(f, skip_magic=False).records:
+                if isinstance(rec, Chunk):
+                    for sub in breakup_chunk(rec, validate_crc=False):
+                        take(sub)
+                else:
+                    take(rec)
+        except Exception:  # the torn end of a crashed recording
+            pass
+    return rows, meta
+
+
+def recording_metadata(path: str | Path) -> dict[str, str]:
+    """The recording's flocktrack metadata (scenario TOML, design JSON) without reading its messages."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            for m in make_reader(f).iter_metadata():
+                if m.name == "flocktrack":
+                    return dict(m.metadata)
+    except Exception:  # truncated: metadata may sit in the readable part
+        return _stream_records(Path(path))[1]
+    return {}
+
+
+def replay_model_from_file(path: str | Path, trail_len: int = 200) -> ReplayModel:
+    rec = load_recording(path)
+    if "scenario" not in rec.metadata:
+        raise ValueError(f"{path}: not a flocktrack recording (no scenario metadata)")
+    info = RunInfo.from_toml_text(rec.metadata["scenario"], rec.metadata.get("design"))
+    return ReplayModel(info, rec.messages, trail_len=trail_len)
+
+
+# ============================================================================ the Viser UI
+
+@dataclass
+class UiTimings:
+    scene_updates: int = 0
+    plot_updates: int = 0
+    scene_s: float = 0.0
+    plot_s: float = 0.0
+    samples: list = field(default_factory=list)
+
+
+class DashboardUI:
+    """The Viser server, its scene objects and GUI. ``send_control(verb, args)`` is called (from Viser's
+    threads) by the fault and run-control buttons; None in replay."""
+
+    def __init__(self, info: RunInfo, port: int = 8080, host: str = "127.0.0.1", *, live: bool = True,
+                 send_control=None, replay: ReplayModel | None = None, verbose: bool = False):
+        import viser
+
+        self.info, self.live, self.replay = info, live, replay
+        self.send_control = send_control
+        self.server = viser.ViserServer(host=host, port=port, label=f"flocktrack · {info.name}", verbose=verbose) \
+            if "verbose" in viser.ViserServer.__init__.__code__.co_varnames \
+            else viser.ViserServer(host=host, port=port, label=f"flocktrack · {info.name}")
+        self.port = self.server.get_port()
+        self.selected: int | None = 0 if info.n else None
+        self.dirty = True                 # redraw even if the tick did not change
+        self.timings = UiTimings()
+        self._last_scene_k = None
+        self._last_plot_k = None
+        self._lock = threading.Lock()
+        self.replay_k = replay.first if replay else 0
+        self.playing = False
+        self.controls_sent: list[tuple[str, dict]] = []
+        self._build_scene()
+        self._build_gui()
+
+    # ------------------------------------------------------------------ scene
+    def _build_scene(self) -> None:
+        s = self.server.scene
+        s.set_up_direction("+z")
+        r = self.info.link_range if math.isfinite(self.info.link_range) else 10.0
+        self.extent = max(2.5 * r, 25.0)
+        self.server.initial_camera.position = (0.0, -1.1 * self.extent, 0.9 * self.extent)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        self.world = s.add_frame("/world", show_axes=False)
+        cell = 10 ** math.floor(math.log10(max(r, 1.0)))
+        self.grid = s.add_grid("/world/grid", width=40 * self.extent, height=40 * self.extent, cell_size=cell,
+                               section_size=10 * cell, cell_color=(225, 225, 225), section_color=(185, 185, 185),
+                               fade_distance=6 * self.extent)
+        z = np.zeros((1, 3), np.float32)
+        zs = np.zeros((1, 2, 3), np.float32)
+        self.h_circles = s.add_line_segments("/world/ranges", zs, (160, 185, 215), thickness=1.0,
+                                             thickness_units="screen", visible=False)
+        self.h_links = s.add_line_segments("/world/links", zs, (70, 110, 170), thickness=2.0,
+                                           thickness_units="screen", visible=False)
+        self.h_trail = s.add_line_segments("/world/trail", zs, (215, 40, 40), thickness=2.5,
+                                           thickness_units="screen", visible=False)
+        size = max(0.06 * r, 0.3)
+        self.h_sensors = s.add_point_cloud("/world/sensors", z, (0, 0, 0), point_size=1.4 * size,
+                                           point_shape="circle", precision="float32", visible=False)
+        self.h_est = s.add_point_cloud("/world/estimates", z, (0, 0, 0), point_size=0.7 * size,
+                                       point_shape="diamond", precision="float32", visible=False)
+        self.h_target = s.add_icosphere("/world/target", radius=0.45 * size, color=(215, 30, 40), visible=False)
+        self.h_fusion = s.add_icosphere("/world/fusion", radius=0.4 * size, color=(148, 103, 189), visible=False)
+        self.h_sel_links = s.add_line_segments("/world/selected/links", zs, (255, 140, 0), thickness=4.0,
+                                               thickness_units="screen", visible=False)
+        self.h_sel_ellipse = s.add_line_segments("/world/selected/ellipse", zs, (30, 110, 200), thickness=3.0,
+                                                 thickness_units="screen", visible=False)
+        self.h_sel_ring = s.add_line_segments("/world/selected/ring", zs, (255, 140, 0), thickness=3.0,
+                                              thickness_units="screen", visible=False)
+        self.h_sel_est = s.add_point_cloud("/world/selected/estimate", z, (30, 110, 200), point_size=1.0 * size,
+                                           point_shape="diamond", precision="float32", visible=False)
+        self.h_sel_label = s.add_label("/world/selected/label", "", visible=False)
+        self.marker_size = size
+
+        @s.on_click()
+        def _(event) -> None:  # click on the ground near a sensor selects it
+            self._pick(event.ray_origin, event.ray_direction)
+
+    def _pick(self, origin, direction) -> None:
+        snap = self._last_snapshot
+        if snap is None or origin is None or direction is None:
+            return
+        o, dvec = np.asarray(origin, float), np.asarray(direction, float)
+        o = o - np.asarray(self.world.position, float)  # into the /world frame
+        if abs(dvec[2]) < 1e-9:
+            return
+        t = -o[2] / dvec[2]
+        if t <= 0:
+            return
+        p = o + t * dvec
+        d = np.linalg.norm(snap.positions[:, :2] - p[None, :2], axis=1)
+        d[~np.isfinite(d)] = np.inf
+        i = int(np.argmin(d))
+        if d[i] <= max(3 * self.marker_size, 0.15 * self.info.link_range if math.isfinite(self.info.link_range) else 3):
+            self.select(i)
+
+    _last_snapshot: Snapshot | None = None
+
+    def select(self, i: int | None) -> None:
+        with self._lock:
+            self.selected = i
+            self.dirty = True
+        if i is not None and hasattr(self, "g_node") and self.g_node.value != str(i):
+            self.g_node.value = str(i)
+
+    @staticmethod
+    def _segments(h, segs: np.ndarray, show: bool = True) -> None:
+        if not show or len(segs) == 0:
+            if h.visible:
+                h.visible = False
+            return
+        h.points = segs
+        if not h.visible:
+            h.visible = True
+
+    @staticmethod
+    def _cloud(h, pts: np.ndarray, colors, show: bool = True) -> None:
+        if not show or len(pts) == 0:
+            if h.visible:
+                h.visible = False
+            return
+        h.points = pts
+        h.colors = np.asarray(colors, np.uint8)
+        if not h.visible:
+            h.visible = True
+
+    def render_scene(self, snap: Snapshot | None, err_rows: np.ndarray | None = None) -> plots.SceneArrays | None:
+        """Redraw the scene from a snapshot (a handful of batched messages)."""
+        if snap is None:
+            return None
+        if snap.k == self._last_scene_k and not self.dirty:
+            return None
+        t0 = time.perf_counter()
+        self._last_snapshot = snap
+        self.dirty = False
+        self._last_scene_k = snap.k
+        scale = float(self.g_err_scale.value) if self.g_err_scale.value > 0 else \
+            plots.auto_error_scale(err_rows if err_rows is not None else snap.errors)
+        sa = plots.scene_arrays(snap, selected=self.selected, error_scale=scale, link_range=self.info.link_range,
+                                show_circles=self.g_circles.value, nsig=float(self.g_nsig.value))
+        centre = sa.centre if self.g_follow.value else np.zeros(3)
+        with self.server.atomic():
+            self.world.position = tuple(-np.array([centre[0], centre[1], 0.0]))
+            self._cloud(self.h_sensors, sa.sensor_points, sa.sensor_colors)
+            self._cloud(self.h_est, sa.estimate_points, sa.estimate_colors, self.g_estimates.value)
+            self._segments(self.h_links, sa.links, self.g_links.value)
+            self._segments(self.h_circles, sa.circles, self.g_circles.value)
+            self._segments(self.h_trail, sa.trail, self.g_trail.value)
+            if sa.target is not None:
+                self.h_target.position = tuple(sa.target)
+                self.h_target.visible = True
+            if sa.fusion is not None:
+                self.h_fusion.position = tuple(sa.fusion)
+                self.h_fusion.visible = True
+            else:
+                self.h_fusion.visible = False
+            sel_pos = sa.selected_pos
+            self._segments(self.h_sel_links, sa.selected_links)
+            self._segments(self.h_sel_ellipse, sa.ellipse, self.g_ellipse.value)
+            if sel_pos is not None:
+                self._segments(self.h_sel_ring, plots.circle_segments(sel_pos[None], 1.1 * self.marker_size, 24))
+                self.h_sel_label.position = tuple(sel_pos + np.array([0.0, 0.0, 1.5 * self.marker_size]))
+                self.h_sel_label.text = f"sensor {sa.selected}"
+                self.h_sel_label.visible = True
+            else:
+                self.h_sel_ring.visible = False
+                self.h_sel_label.visible = False
+            if sa.selected_est is not None:
+                self._cloud(self.h_sel_est, sa.selected_est[None].astype(np.float32), (30, 110, 200))
+            else:
+                self.h_sel_est.visible = False
+        self._render_inspect(snap)
+        self.timings.scene_updates += 1
+        self.timings.scene_s += time.perf_counter() - t0
+        return sa
+
+    # ------------------------------------------------------------------ plots and text
+    def render_plots(self, series: dict[str, np.ndarray], force: bool = False) -> None:
+        if not len(series["k"]):
+            return
+        last_k = int(series["k"][-1])
+        if last_k == self._last_plot_k and not force:
+            return
+        t0 = time.perf_counter()
+        self._last_plot_k = last_k
+        ser = plots.decimate(series, self.max_plot_points)
+        specs = plots.uplot_panels(ser, self.info.n, self.selected,
+                                   has_lower=self.info.tmsee_lower is not None)
+        with self.server.atomic():
+            for spec in specs:
+                h = self.h_plots.get(spec.key)
+                if h is None or len(h.series) != len(spec.series):
+                    if h is not None:
+                        h.remove()
+                    self.h_plots[spec.key] = self._add_plot(spec)
+                else:
+                    h.data = tuple(np.asarray(a, float) for a in spec.data)
+        self.timings.plot_updates += 1
+        self.timings.plot_s += time.perf_counter() - t0
+
+    def _add_plot(self, spec: plots.PanelSpec):
+        with self.plot_tab:
+            return self.server.gui.add_uplot(data=tuple(np.asarray(a, float) for a in spec.data), series=spec.series,
+                                             title=spec.title, scales=spec.scales, axes=spec.axes, aspect=2.5,
+                                             order=self._plot_order[spec.key])
+
+    def render_status(self, st: dict) -> None:
+        def f(v, fmt="{:.3g}"):
+            return "–" if v is None or (isinstance(v, float) and not math.isfinite(v)) else fmt.format(v)
+
+        mode = "replay" if not self.live else ("**paused**" if st.get("paused") else "running")
+        if st.get("ended"):
+            mode = "ended" if self.live else mode
+        lines = [f"**{self.info.name}** · {self.info.n} sensors · {self.info.estimator} · {mode}",
+                 f"tick **{f(st.get('k'), '{}')}** (world at {f(st.get('latest_tick'), '{}')}) · "
+                 f"t = {f(st.get('t'), '{:.2f}')} s",
+                 f"RMSE {f(st.get('rmse'))} · λ₂ {f(st.get('lambda2'))} · links {f(st.get('links'), '{:.0f}')}",
+                 f"{f(st.get('msg_rate'), '{:.0f}')} msg/s · dropped {f(st.get('drop_rate'), '{:.1f}')}/s "
+                 f"(bus {st.get('bus_dropped', 0)}, missing {st.get('missing', 0)})"]
+        if st.get("speed") is not None:
+            lines.append(f"speed ×{f(st.get('speed'))}")
+        if st.get("last_event"):
+            lines.append(f"last event: `{st['last_event']}`")
+        text = "  \n".join(lines)
+        if text != self.g_status.content:
+            self.g_status.content = text
+
+    def _render_inspect(self, snap: Snapshot) -> None:
+        i = self.selected
+        if i is None or not 0 <= i < snap.n:
+            text = "click a sensor, or pick one above"
+        else:
+            nb = snap.neighbours[i] if i < len(snap.neighbours) else []
+            xn = snap.est_next.get(i)
+            P = snap.cov_pos.get(i)
+            e = snap.errors[i]
+            parts = [f"**sensor {i}** · {'alive' if snap.alive[i] else '**dead**'} · tick {snap.k}",
+                     f"position {np.array2string(snap.positions[i][:self.info.pos_dims], precision=2)}",
+                     f"own error eᵢ = {e:.3g}" if np.isfinite(e) else "no estimate this tick",
+                     "x̂ₖ₊₁ = " + (np.array2string(xn, precision=2) if xn is not None else "–"),
+                     "position σ = " + (np.array2string(np.sqrt(np.maximum(np.diag(P), 0)), precision=3)
+                                        + f" (ellipse: {self.g_nsig.value:g}σ)" if P is not None else "– (no covariance)"),
+                     f"neighbours ({len(nb)}): {', '.join(map(str, nb)) or 'none'}"]
+            text = "  \n".join(parts)
+        if text != self.g_inspect.content:
+            self.g_inspect.content = text
+
+    # ------------------------------------------------------------------ GUI
+    def _control(self, verb: str, **args) -> None:
+        if self.send_control is None:
+            return
+        self.controls_sent.append((verb, args))
+        self.send_control(verb, args)
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_width="large", show_share_button=False, show_logo=False,
+                            brand_color=(40, 90, 160))
+        self.max_plot_points = 1500
+        self.h_plots: dict = {}
+        self._plot_order = {k: 100 + i for i, k in enumerate(["errors", "tmsee", "disagreement", "lambda2", "rates"])}
+        self.g_status = gui.add_markdown("waiting for the first tick …")
+        n = self.info.n
+        ids = [str(i) for i in range(n)] or ["0"]
+
+        if self.live:
+            with gui.add_folder("Run control"):
+                bg = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
+                self.g_step_n = gui.add_number("Step ticks", 1, min=1, max=10_000, step=1)
+                self.g_speed = gui.add_slider("Speed ×", 0.05, 4.0, 0.05, min(4.0, max(0.05, round(self.info.speed, 2))),
+                                              hint="realtime factor (control/speed)")
+
+                @bg.on_click
+                def _(event) -> None:
+                    v = event.target.value
+                    if v == "Pause":
+                        self._control("pause")
+                    elif v == "Resume":
+                        self._control("resume")
+                    elif v == "Step":
+                        self._control("step", n=int(self.g_step_n.value))
+
+                @self.g_speed.on_update
+                def _(event) -> None:
+                    if event.client is not None:
+                        self._control("speed", factor=float(self.g_speed.value))
+        else:
+            rp = self.replay
+            with gui.add_folder("Replay"):
+                self.g_slider = gui.add_slider("Tick", rp.first if rp else 0, max(rp.last if rp else 1, 1), 1,
+                                               rp.first if rp else 0)
+                bg = gui.add_button_group("Playback", ("Play", "Pause", "First", "Last"))
+                self.g_play_speed = gui.add_slider("Playback ×", 0.1, 10.0, 0.1, 1.0)
+
+                @self.g_slider.on_update
+                def _(event) -> None:
+                    self.replay_k = int(self.g_slider.value)
+                    self.dirty = True
+
+                @bg.on_click
+                def _(event) -> None:
+                    v = event.target.value
+                    if v == "Play":
+                        self.playing = True
+                    elif v == "Pause":
+                        self.playing = False
+                    elif v == "First" and self.replay:
+                        self.playing = False
+                        self.g_slider.value = self.replay.first
+                    elif v == "Last" and self.replay:
+                        self.playing = False
+                        self.g_slider.value = self.replay.last
+
+        with gui.add_folder("Inspect"):
+            self.g_node = gui.add_dropdown("Sensor", ids, initial_value=ids[0])
+            self.g_ellipse = gui.add_checkbox("Covariance ellipse", True)
+            self.g_nsig = gui.add_slider("Ellipse n·σ", 1.0, 50.0, 1.0, 2.0, hint="size of the ellipse in σ")
+            self.g_nsig.on_update(lambda _e: setattr(self, "dirty", True))
+            self.g_inspect = gui.add_markdown("")
+
+            @self.g_node.on_update
+            def _(event) -> None:
+                try:
+                    i = int(self.g_node.value)
+                except ValueError:
+                    return
+                with self._lock:
+                    self.selected = i
+                    self.dirty = True
+                    self._last_plot_k = None
+                if self.live:
+                    for h in (self.g_kill_id, self.g_link_a):
+                        h.value = i
+
+        if self.live:
+            with gui.add_folder("Faults (control/**)"):
+                self.g_kill_id = gui.add_number("Sensor id", 0, min=0, max=max(n - 1, 0), step=1)
+                kb = gui.add_button_group("Process", ("Kill sensor", "Restart sensor"))
+                self.g_link_a = gui.add_number("Link a", 0, min=0, max=max(n - 1, 0), step=1)
+                self.g_link_b = gui.add_number("Link b", 1 if n > 1 else 0, min=0, max=max(n - 1, 0), step=1)
+                lb = gui.add_button_group("Link", ("Drop link", "Heal link"))
+                self.g_loss = gui.add_slider("Link loss p", 0.0, 1.0, 0.05, 0.0)
+                b_loss = gui.add_button("Set link loss")
+                pb = gui.add_button_group("Flock", ("Partition", "Heal all"))
+                self.g_burst_agent = gui.add_number("Outlier sensor (−1 = all)", -1, min=-1, max=max(n - 1, 0), step=1)
+                self.g_burst_ticks = gui.add_number("Outlier ticks", 20, min=1, max=100_000, step=1)
+                self.g_burst_mag = gui.add_number("Outlier magnitude", 5.0, min=0.0, max=1e6, step=0.5)
+                b_burst = gui.add_button("Inject outlier burst")
+
+                @kb.on_click
+                def _(event) -> None:
+                    verb = "kill" if event.target.value == "Kill sensor" else "restart"
+                    self._control(verb, agent=int(self.g_kill_id.value))
+
+                @lb.on_click
+                def _(event) -> None:
+                    verb = "link_drop" if event.target.value == "Drop link" else "link_heal"
+                    self._control(verb, a=int(self.g_link_a.value), b=int(self.g_link_b.value))
+
+                @b_loss.on_click
+                def _(event) -> None:
+                    self._control("link_loss", p=float(self.g_loss.value))
+
+                @pb.on_click
+                def _(event) -> None:
+                    if event.target.value == "Partition":
+                        self._control("partition", groups=self.partition_groups())
+                    else:
+                        self._control("heal")
+
+                @b_burst.on_click
+                def _(event) -> None:
+                    self._control("outlier_burst", agent=int(self.g_burst_agent.value),
+                                  ticks=int(self.g_burst_ticks.value), magnitude=float(self.g_burst_mag.value))
+
+        with gui.add_folder("Display", expand_by_default=False):
+            self.g_links = gui.add_checkbox("Links", True)
+            self.g_circles = gui.add_checkbox("Range circles", n <= 40)
+            self.g_estimates = gui.add_checkbox("Node estimates", True)
+            self.g_trail = gui.add_checkbox("Target trail", True)
+            self.g_follow = gui.add_checkbox("Follow the target", True)
+            self.g_err_scale = gui.add_number("Error colour scale (0 = auto)", 0.0, min=0.0, step=0.1)
+            for h in (self.g_links, self.g_circles, self.g_estimates, self.g_trail, self.g_follow, self.g_err_scale):
+                h.on_update(lambda _e: setattr(self, "dirty", True))
+            gui.add_markdown("colour: own error, green (low) → red (≥ scale); grey = dead  \n"
+                             "● sensor  ◆ its estimate  red ball = target (trail)  purple = fusion  \n"
+                             "orange = selected sensor's links, blue = its covariance ellipse")
+
+        # the plots, in their own panel docked left
+        panel = gui.add_panel()
+        self.plot_tab = panel.add_tab("Plots")
+        panel.dock_left()
+        panel.set_width(460)
+        with self.plot_tab:
+            gui.add_markdown("live series (uPlot; drag to zoom, double-click to reset)", order=1)
+
+    def attach_replay(self, model: ReplayModel) -> None:
+        """The recording is loaded (the page is served meanwhile): set the slider to its ticks."""
+        self.replay = model
+        self.g_slider.min = model.first
+        self.g_slider.max = max(model.last, model.first + 1)
+        self.g_slider.value = model.first
+        self.replay_k = model.first
+        self.dirty = True
+
+    def partition_groups(self) -> list[int]:
+        """Two groups split at the median x position of the shown tick (the flock cut in half)."""
+        snap = self._last_snapshot
+        n = self.info.n
+        if snap is None or not np.isfinite(snap.positions[:, 0]).all():
+            return [int(i >= n // 2) for i in range(n)]
+        x = snap.positions[:, 0]
+        order = np.argsort(x, kind="stable")
+        g = np.zeros(n, int)
+        g[order[n // 2:]] = 1
+        return [int(v) for v in g]
+
+    def stop(self) -> None:
+        try:
+            self.server.stop()
+        except Exception:  # already stopped
+            pass
+
+
+# ============================================================================ the live loop
+
+class LiveDashboard:
+    """Bus → state → UI, on one thread. :meth:`step` does one poll / publish / redraw round."""
+
+    def __init__(self, state: DashboardState, ui: DashboardUI | None, bus, *, scene_period: float = 0.1,
+                 plot_period: float = 0.5, max_messages: int = 4000, clock=time.monotonic):
+        self.state, self.ui, self.bus = state, ui, bus
+        self.scene_period, self.plot_period = scene_period, plot_period
+        self.max_messages = max_messages
+        self.clock = clock
+        self.controls: queue.SimpleQueue = queue.SimpleQueue()
+        self._next_scene = 0.0
+        self._next_plot = 0.0
+        self.published: list[wire.Control] = []
+
+    def attach(self) -> None:
+        """One raw subscription; the keys the model needs go through the bus's own decode-validate-count
+        path (:func:`agent.bus.deliver`, drops land in ``bus.stats.dropped``), the rest is only counted."""
+        from agent.bus import deliver
+
+        st, clock, stats = self.state, self.clock, self.bus.stats
+        handlers = [lambda key, msg: st.ingest(key, msg, clock())]
+        wanted: dict[str, bool] = {}
+
+        def on_raw(key: str, data: bytes) -> None:
+            w = wanted.get(key)
+            if w is None:
+                w = wanted[key] = decoded_key(key)
+            if w:
+                deliver(stats, handlers, key, data)
+            else:
+                st.count(clock())
+
+        self.bus.subscribe_raw(SUBSCRIPTION, on_raw)
+
+    def send_control(self, verb: str, args: dict) -> None:
+        """Thread-safe: queue a control message for the loop thread to publish."""
+        if verb not in CONTROL_VERBS:
+            raise ValueError(f"unknown control verb {verb!r}")
+        self.controls.put((verb, dict(args)))
+
+    def step(self, timeout: float = 0.02) -> None:
+        st = self.state
+        self.bus.poll(timeout, max_messages=self.max_messages)
+        now = self.clock()
+        st.last_now = max(st.last_now, now)
+        st.note_bus_dropped(sum(self.bus.stats.dropped.values()), now)
+        while True:
+            try:
+                verb, args = self.controls.get_nowait()
+            except queue.Empty:
+                break
+            msg = wire.Control(verb=verb, args=args, k=max(st.latest_tick, 0))
+            self.bus.publish(f"control/{verb}", msg)
+            self.published.append(msg)
+            log.info("published control/%s %s", verb, args)
+        if self.ui is None:
+            return
+        if now >= self._next_scene and (st.shown_k != self.ui._last_scene_k or self.ui.dirty):
+            # at most one redraw per scene_period, and only when there is a new tick (or a GUI change)
+            self._next_scene = now + self.scene_period
+            self.ui.render_scene(st.snapshot(), st.series(last=200)["err"])
+        if now >= self._next_plot:
+            self._next_plot = now + self.plot_period
+            self.ui.render_plots(st.series(last=self.ui.max_plot_points * 4))
+            summ = st.summary()
+            if st.events:
+                k, verb, args = st.events[-1]
+                summ["last_event"] = f"{verb} {args} @k={k}" if args else f"{verb} @k={k}"
+            self.ui.render_status(summ)
+
+
+def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "127.0.0.1",
+             config_file: str | None = None, exit_on_end: bool = False, stop_event: threading.Event | None = None,
+             token: str = "dashboard/0") -> int:
+    from agent.bus import ZenohBus
+
+    stop_event = stop_event or threading.Event()
+    # Zenoh's receive thread needs the GIL for every sample; with the default 5 ms switch interval a busy
+    # loop thread lets through ~200 samples/s and the backlog backs up to the publishers (measured with
+    # bench/bench_dashboard.py: 100 sensors, 6 000 msg/s). 1 ms keeps the callbacks flowing.
+    sys.setswitchinterval(0.001)
+    bus = ZenohBus(run, connect=connect, config_file=config_file)
+    state = DashboardState(info)
+    loop = LiveDashboard(state, None, bus)
+    ui = DashboardUI(info, port=port, host=host, live=True, send_control=loop.send_control)
+    loop.ui = ui
+    log.info("dashboard for run %s on http://%s:%d", run, host, ui.port)
+    try:
+        loop.attach()
+        bus.declare_token(token)
+        end_at = None
+        while not stop_event.is_set():
+            loop.step()
+            if exit_on_end and state.ended:
+                end_at = end_at or time.monotonic() + 1.0
+                if time.monotonic() > end_at:
+                    break
+    finally:
+        bus.close()
+        ui.stop()
+    return 0
+
+
+def run_replay(path: str | Path, port: int, *, host: str = "127.0.0.1",
+               stop_event: threading.Event | None = None, autoplay: bool = False) -> int:
+    stop_event = stop_event or threading.Event()
+    meta = recording_metadata(path)
+    if "scenario" not in meta:
+        raise ValueError(f"{path}: not a flocktrack recording (no scenario metadata)")
+    ui = DashboardUI(RunInfo.from_toml_text(meta["scenario"], meta.get("design")), port=port, host=host,
+                     live=False)
+    ui.g_status.content = f"loading `{Path(path).name}` …"
+    t0 = time.monotonic()
+    model = replay_model_from_file(path)
+    ui.attach_replay(model)
+    log.info("replaying %s (%d ticks, loaded in %.1f s) on http://%s:%d", path, len(model), time.monotonic() - t0,
+             host, ui.port)
+    ui.playing = autoplay
+    T = model.info.T or 0.1
+    last_plot = 0.0
+    acc = 0.0
+    last = time.monotonic()
+    try:
+        while not stop_event.is_set():
+            now = time.monotonic()
+            if ui.playing and model.ticks:
+                acc += (now - last) * float(ui.g_play_speed.value) / T
+                adv = int(acc)
+                if adv:
+                    acc -= adv
+                    nxt = min(ui.replay_k + adv, model.last)
+                    if nxt >= model.last:
+                        ui.playing = False
+                    ui.g_slider.value = nxt
+            else:
+                acc = 0.0
+            last = now
+            k = ui.replay_k
+            ui.render_scene(model.snapshot(k), model.series(k, last=200)["err"])
+            if now - last_plot > (0.3 if ui.playing else 0.1):
+                last_plot = now
+                ui.render_plots(model.series(k))
+                st = model.state
+                row = st.rows.get(model.seek(k), {})
+                ui.render_status({"k": model.seek(k), "latest_tick": model.last, "t": row.get("t"),
+                                  "rmse": row.get("rmse"), "lambda2": row.get("lambda2"), "links": row.get("links"),
+                                  "msg_rate": row.get("msg_rate"), "drop_rate": row.get("drop_rate"),
+                                  "bus_dropped": 0, "missing": int(np.nansum(model.series(k)["missing"]))})
+            time.sleep(0.02)
+    finally:
+        ui.stop()
+    return 0

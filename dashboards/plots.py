@@ -1,0 +1,359 @@
+"""Data → figures: pure functions from :mod:`dashboards.state` snapshots and series to what is drawn.
+
+* :func:`scene_arrays` turns a :class:`~dashboards.state.Snapshot` into a handful of batched arrays
+  (one point cloud for all sensors, one for all node estimates, one line-segment set for all links,
+  one for all range circles, …) so the live scene costs a few messages per update whatever the flock size;
+* :func:`uplot_panels` turns series into the data and series options of the live uPlot panels;
+* :func:`save_static_png` draws the same panels plus a top view of the flock with matplotlib
+  (the only function here that touches a file).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .state import Snapshot
+
+# --------------------------------------------------------------------------- colours
+
+#: low error → high error (green, yellow, orange, red)
+_RAMP = np.array([[40, 170, 80], [230, 200, 40], [240, 120, 30], [210, 30, 40]], float)
+DEAD = np.array([150, 150, 150], np.uint8)
+UNKNOWN = np.array([110, 110, 140], np.uint8)
+NODE_PALETTE = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+                "#bcbd22", "#17becf", "#393b79", "#637939"]
+
+
+def error_colors(errors: np.ndarray, alive: np.ndarray, scale: float) -> np.ndarray:
+    """(n, 3) uint8: each sensor coloured by its own position error on a green→red ramp saturating at
+    ``scale``; grey when dead, blue-grey when it has no estimate this tick."""
+    errors = np.asarray(errors, float)
+    u = np.clip(np.nan_to_num(errors, nan=0.0) / max(float(scale), 1e-12), 0.0, 1.0) * (len(_RAMP) - 1)
+    i0 = np.minimum(np.floor(u).astype(int), len(_RAMP) - 2)
+    w = (u - i0)[:, None]
+    c = (_RAMP[i0] * (1 - w) + _RAMP[i0 + 1] * w).round().astype(np.uint8)
+    c[np.isnan(errors)] = UNKNOWN
+    c[~np.asarray(alive, bool)] = DEAD
+    return c
+
+
+def auto_error_scale(err_rows: np.ndarray, factor: float = 3.0, floor: float = 1e-3) -> float:
+    """A colour scale from recent errors: ``factor`` × their median (at least ``floor``), so a typical
+    sensor is green-yellow and one several times worse than the flock is red."""
+    e = np.asarray(err_rows, float)
+    e = e[np.isfinite(e)]
+    return max(factor * float(np.median(e)), floor) if e.size else 1.0
+
+
+# --------------------------------------------------------------------------- geometry
+
+def link_segments(positions: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(E, 2, 3) float32 segments for the links (pairs with an unknown end are left out)."""
+    edges = np.asarray(edges, int).reshape(-1, 2)
+    if edges.size == 0:
+        return np.zeros((0, 2, 3), np.float32)
+    seg = np.stack([positions[edges[:, 0]], positions[edges[:, 1]]], axis=1)
+    ok = np.all(np.isfinite(seg), axis=(1, 2))
+    return seg[ok].astype(np.float32)
+
+
+_CIRCLE_CACHE: dict[int, np.ndarray] = {}
+
+
+def _unit_circle(nseg: int) -> np.ndarray:
+    c = _CIRCLE_CACHE.get(nseg)
+    if c is None:
+        a = np.linspace(0.0, 2 * math.pi, nseg + 1)
+        c = _CIRCLE_CACHE[nseg] = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
+    return c
+
+
+def circle_segments(centres: np.ndarray, radius: float, nseg: int = 32) -> np.ndarray:
+    """(m·nseg, 2, 3) float32: a circle of ``radius`` in the xy plane around each finite centre."""
+    centres = np.asarray(centres, float).reshape(-1, 3)
+    centres = centres[np.all(np.isfinite(centres), axis=1)]
+    if centres.size == 0 or not math.isfinite(radius) or radius <= 0:
+        return np.zeros((0, 2, 3), np.float32)
+    ring = _unit_circle(nseg) * radius                          # (nseg+1, 3)
+    pts = centres[:, None, :] + ring[None, :, :]                # (m, nseg+1, 3)
+    seg = np.stack([pts[:, :-1], pts[:, 1:]], axis=2)           # (m, nseg, 2, 3)
+    return seg.reshape(-1, 2, 3).astype(np.float32)
+
+
+def polyline_segments(points: np.ndarray) -> np.ndarray:
+    """(L−1, 2, 3) float32 segments joining consecutive points."""
+    p = np.asarray(points, float).reshape(-1, 3)
+    if len(p) < 2:
+        return np.zeros((0, 2, 3), np.float32)
+    return np.stack([p[:-1], p[1:]], axis=1).astype(np.float32)
+
+
+def ellipse_points(mean: np.ndarray, cov: np.ndarray, nsig: float = 2.0, nseg: int = 64) -> np.ndarray:
+    """(nseg+1, 3): the ``nsig``-σ ellipse of a 2-D (or the xy block of a 3-D) covariance around ``mean``."""
+    C = np.asarray(cov, float)[:2, :2]
+    C = 0.5 * (C + C.T)
+    w, V = np.linalg.eigh(C)
+    w = np.sqrt(np.maximum(w, 0.0))
+    a = np.linspace(0.0, 2 * math.pi, nseg + 1)
+    xy = (V @ (nsig * w[:, None] * np.stack([np.cos(a), np.sin(a)]))).T
+    out = np.zeros((nseg + 1, 3))
+    m = np.asarray(mean, float).reshape(-1)
+    out[:, :2] = xy + m[:2]
+    out[:, 2] = m[2] if m.size > 2 else 0.0
+    return out
+
+
+@dataclass
+class SceneArrays:
+    """Everything the scene draws, batched: one array per scene object."""
+
+    sensor_points: np.ndarray          # (n_known, 3) float32
+    sensor_colors: np.ndarray          # (n_known, 3) uint8
+    sensor_ids: np.ndarray             # (n_known,) which sensor each point is
+    estimate_points: np.ndarray        # (m, 3) float32: node estimates of the target position
+    estimate_colors: np.ndarray        # (m, 3) uint8
+    links: np.ndarray                  # (E, 2, 3) float32
+    circles: np.ndarray                # (·, 2, 3) float32 range circles
+    trail: np.ndarray                  # (L−1, 2, 3) float32
+    target: np.ndarray | None          # (3,)
+    fusion: np.ndarray | None          # (3,)
+    selected: int | None = None
+    selected_pos: np.ndarray | None = None
+    selected_est: np.ndarray | None = None
+    selected_links: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.float32))
+    ellipse: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.float32))
+    centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+def scene_arrays(snap: Snapshot, *, selected: int | None = None, error_scale: float = 1.0,
+                 link_range: float = math.inf, show_circles: bool = True, circle_segments_n: int = 32,
+                 nsig: float = 2.0) -> SceneArrays:
+    """Batch a snapshot into scene arrays (all sensors in one cloud, all links in one segment set)."""
+    pos = snap.positions
+    known = np.all(np.isfinite(pos), axis=1)
+    colors = error_colors(snap.errors, snap.alive, error_scale)
+    ids = np.flatnonzero(known)
+    est_ok = np.all(np.isfinite(snap.est_pos), axis=1)
+    est_cols = (colors[est_ok].astype(float) * 0.55 + 255 * 0.45).astype(np.uint8)  # paler than the sensor
+    circles = circle_segments(pos[known & snap.alive], link_range, circle_segments_n) if show_circles \
+        else np.zeros((0, 2, 3), np.float32)
+    if snap.truth_pos is not None:
+        centre = snap.truth_pos.copy()
+    elif known.any():
+        centre = pos[known].mean(axis=0)
+    else:
+        centre = np.zeros(3)
+    out = SceneArrays(sensor_points=pos[known].astype(np.float32), sensor_colors=colors[known], sensor_ids=ids,
+                      estimate_points=snap.est_pos[est_ok].astype(np.float32), estimate_colors=est_cols,
+                      links=link_segments(pos, snap.edges), circles=circles, trail=polyline_segments(snap.trail),
+                      target=snap.truth_pos, fusion=snap.fusion_pos, centre=centre)
+    if selected is not None and 0 <= selected < snap.n:
+        out.selected = selected
+        if known[selected]:
+            out.selected_pos = pos[selected]
+            nb = [j for j in snap.neighbours[selected] if known[j]] if selected < len(snap.neighbours) else []
+            if nb:
+                out.selected_links = link_segments(pos, np.array([[selected, j] for j in nb]))
+        if est_ok[selected]:
+            out.selected_est = snap.est_pos[selected]
+        P = snap.cov_pos.get(selected)
+        xn = snap.est_next.get(selected)
+        if P is not None and xn is not None and P.shape[0] >= 2:
+            d = P.shape[0]
+            mean = np.zeros(3)
+            mean[:min(3, d)] = xn[:min(3, d)]
+            out.ellipse = polyline_segments(ellipse_points(mean, P, nsig))
+    return out
+
+
+# --------------------------------------------------------------------------- uPlot panels
+
+@dataclass
+class PanelSpec:
+    """One uPlot panel: ``data`` (x first), per-series options, scales and axes (uPlot option dicts)."""
+
+    key: str
+    title: str
+    data: tuple[np.ndarray, ...]
+    series: tuple[dict, ...]
+    scales: dict = field(default_factory=dict)
+    axes: tuple[dict, ...] | None = None
+
+    @property
+    def labels(self) -> list[str]:
+        return [s.get("label", "") for s in self.series]
+
+
+def _x_series() -> dict:
+    return {"label": "tick"}
+
+
+def _line(label: str, color: str, width: float = 1.5, dash: list[int] | None = None, scale: str = "y") -> dict:
+    s: dict = {"label": label, "stroke": color, "width": width, "scale": scale, "spanGaps": False,
+               "points": {"show": False}}
+    if dash:
+        s["dash"] = dash
+    return s
+
+
+def _band(label: str, color: str) -> dict:
+    return {"label": label, "stroke": color, "width": 0.5, "scale": "y", "points": {"show": False}}
+
+
+_X_SCALE = {"x": {"time": False}}
+
+
+def _axes(ylabel: str, right: str | None = None) -> tuple[dict, ...]:
+    ax = [{"label": "tick", "size": 34, "labelSize": 14}, {"label": ylabel, "size": 52, "labelSize": 14}]
+    if right:
+        ax.append({"label": right, "scale": right, "side": 1, "size": 52, "labelSize": 14, "grid": {"show": False}})
+    return tuple(ax)
+
+
+def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = None,
+                 max_node_series: int = 10, has_lower: bool | None = None) -> list[PanelSpec]:
+    """The live plot panels. Per-node errors are drawn one line per node up to ``max_node_series``
+    nodes; above that as the median and maximum over nodes plus the selected node."""
+    k = np.asarray(series["k"], float)
+    err = np.asarray(series["err"], float).reshape(len(k), -1)
+    panels: list[PanelSpec] = []
+
+    # 1. position errors and the network RMSE
+    data = [k]
+    sers = [_x_series()]
+    if n <= max_node_series:
+        for i in range(n):
+            data.append(err[:, i])
+            w = 2.5 if i == selected else 1.0
+            sers.append(_line(f"e{i}", NODE_PALETTE[i % len(NODE_PALETTE)], w))
+    else:
+        with np.errstate(all="ignore"):
+            ok = np.isfinite(err).any(axis=1)
+            med = np.full(len(k), np.nan)
+            mx = np.full(len(k), np.nan)
+            if ok.any():
+                med[ok] = np.nanmedian(err[ok], axis=1)
+                mx[ok] = np.nanmax(err[ok], axis=1)
+        data += [med, mx]
+        sers += [_line("median eᵢ", "#2ca02c", 1.2), _line("max eᵢ", "#d62728", 1.2)]
+        if selected is not None and 0 <= selected < err.shape[1]:
+            data.append(err[:, selected])
+            sers.append(_line(f"e{selected}", "#1f77b4", 2.0))
+    data.append(series["rmse"])
+    sers.append(_line("RMSE", "#000000", 2.5))
+    panels.append(PanelSpec("errors", "Position error eᵢ(k) and network RMSE", tuple(data), tuple(sers), _X_SCALE,
+                            _axes("error")))
+
+    # 2. TMSEE and its lower bound
+    lower = series.get("tmsee_lower")
+    has_lower = bool(lower is not None and np.isfinite(lower).any()) if has_lower is None else has_lower
+    data = [k, series["tmsee"]]
+    sers = [_x_series(), _line("TMSEE", "#1f77b4", 1.8)]
+    if has_lower:
+        data.append(lower)
+        sers.append(_line("lower bound (12)", "#d62728", 1.5, dash=[6, 4]))
+    panels.append(PanelSpec("tmsee", "TMSEE" + (" vs its lower bound" if has_lower else " (no lower bound defined)"),
+                            tuple(data), tuple(sers), _X_SCALE, _axes("Σ‖x̂ᵢ−x‖²")))
+
+    # 3. consensus disagreement (and the error of the mean estimate, fusion if present)
+    data = [k, series["disagreement"], series["mean_err"]]
+    sers = [_x_series(), _line("disagreement", "#9467bd", 1.8), _line("‖x̄−x‖", "#8c564b", 1.2)]
+    fe = series.get("fusion_err")
+    if fe is not None and np.isfinite(fe).any():
+        data.append(fe)
+        sers.append(_line("fusion", "#e377c2", 1.2))
+    panels.append(PanelSpec("disagreement", "Consensus disagreement √mean‖x̂ᵢ−x̄‖²", tuple(data), tuple(sers),
+                            _X_SCALE, _axes("disagreement")))
+
+    # 4. algebraic connectivity
+    panels.append(PanelSpec("lambda2", "Algebraic connectivity λ₂ and links", (k, series["lambda2"], series["links"]),
+                            (_x_series(), _line("λ₂", "#17becf", 1.8), _line("links", "#bbbbbb", 1.0, scale="links")),
+                            {**_X_SCALE, "links": {"auto": True}}, _axes("λ₂", right="links")))
+
+    # 5. message rate and dropped messages per second
+    panels.append(PanelSpec("rates", "Messages / s and dropped / s", (k, series["msg_rate"], series["drop_rate"]),
+                            (_x_series(), _line("msg/s", "#1f77b4", 1.5), _line("dropped/s", "#d62728", 1.5,
+                                                                                   scale="drop")),
+                            {**_X_SCALE, "drop": {"auto": True}}, _axes("msg/s", right="drop")))
+    return panels
+
+
+def decimate(series: dict[str, np.ndarray], max_points: int) -> dict[str, np.ndarray]:
+    """Every m-th row (keeping the last) so that at most ``max_points`` rows go to the browser."""
+    n = len(series["k"])
+    if n <= max_points:
+        return series
+    step = math.ceil(n / max_points)
+    idx = np.arange(n - 1, -1, -step)[::-1]
+    return {c: v[idx] for c, v in series.items()}
+
+
+# --------------------------------------------------------------------------- static PNG
+
+def save_static_png(path, series: dict[str, np.ndarray], snap: Snapshot | None, n: int, *, title: str = "",
+                    link_range: float = math.inf, selected: int | None = None, max_node_series: int = 10) -> None:
+    """A static figure of the dashboard: top view of the flock at the snapshot's tick and the five panels."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = uplot_panels(series, n, selected, max_node_series)
+    fig = plt.figure(figsize=(15, 8.5), dpi=110)
+    gs = fig.add_gridspec(3, 3, width_ratios=[1.25, 1, 1])
+    ax0 = fig.add_subplot(gs[:, 0])
+    if snap is not None:
+        sa = scene_arrays(snap, selected=selected, error_scale=auto_error_scale(series["err"][-200:]),
+                          link_range=link_range)
+        for seg in sa.circles.reshape(-1, 2, 3)[:: 1]:
+            ax0.plot(seg[:, 0], seg[:, 1], color="#cfd8e3", lw=0.5, zorder=1)
+        for seg in sa.links:
+            ax0.plot(seg[:, 0], seg[:, 1], color="#4a6fa5", lw=0.8, alpha=0.7, zorder=2)
+        if len(sa.trail):
+            tr = np.concatenate([sa.trail[:, 0], sa.trail[-1:, 1]])
+            ax0.plot(tr[:, 0], tr[:, 1], color="#d62728", lw=1.2, alpha=0.6, zorder=3)
+        ax0.scatter(sa.sensor_points[:, 0], sa.sensor_points[:, 1], c=sa.sensor_colors / 255.0, s=60,
+                    edgecolors="k", linewidths=0.5, zorder=4, label="sensors (colour = own error)")
+        if len(sa.estimate_points):
+            ax0.scatter(sa.estimate_points[:, 0], sa.estimate_points[:, 1], c=sa.estimate_colors / 255.0, s=14,
+                        marker="D", zorder=5, label="node estimates")
+        if sa.target is not None:
+            ax0.scatter([sa.target[0]], [sa.target[1]], c="#d62728", s=120, marker="*", zorder=6, label="target")
+        if sa.fusion is not None:
+            ax0.scatter([sa.fusion[0]], [sa.fusion[1]], c="#9467bd", s=60, marker="P", zorder=6, label="fusion")
+        if len(sa.ellipse):
+            el = np.concatenate([sa.ellipse[:, 0], sa.ellipse[-1:, 1]])
+            ax0.plot(el[:, 0], el[:, 1], color="#1f77b4", lw=1.5, zorder=6)
+        ax0.set_title(f"tick {snap.k}  t = {snap.t:.2f} s")
+        ax0.legend(loc="upper left", fontsize=8)
+    ax0.set_aspect("equal", adjustable="datalim")
+    ax0.grid(alpha=0.3)
+    slots = [gs[0, 1], gs[0, 2], gs[1, 1], gs[1, 2], gs[2, 1]]
+    for p, slot in zip(panels, slots):
+        ax = fig.add_subplot(slot)
+        x = p.data[0]
+        right = None
+        for y, s in zip(p.data[1:], p.series[1:]):
+            target_ax = ax
+            if s.get("scale", "y") != "y":
+                right = right or ax.twinx()
+                target_ax = right
+            target_ax.plot(x, y, color=s.get("stroke", "k"), lw=s.get("width", 1.0) * 0.8,
+                           ls="--" if s.get("dash") else "-", label=s.get("label"))
+        ax.set_title(p.title, fontsize=9)
+        ax.grid(alpha=0.3)
+        if len(p.series) <= 8:
+            ax.legend(fontsize=7, loc="upper right")
+    ax = fig.add_subplot(gs[2, 2])
+    ax.axis("off")
+    if len(series["k"]):
+        last = {c: series[c][-1] for c in ("k", "rmse", "lambda2", "msg_rate", "drop_rate")}
+        ax.text(0.0, 0.9, "\n".join(f"{c}: {v:.4g}" for c, v in last.items()), va="top", family="monospace")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
