@@ -42,7 +42,22 @@ def build_fusion(sc: Scenario):
     def to_record(m):
         return RelativeMeasurement(m.src + 1, m.t, m.y, R, m.pos, G)
 
-    return FusionRole(sc.run.ticks, sc.uav.make_estimators(), to_record)
+    ests = sc.uav.make_estimators()
+    _warm_up(sc.uav.make_estimators(), to_record)  # compile the numba solver before joining the run
+    return FusionRole(sc.run.ticks, ests, to_record)
+
+
+def _warm_up(estimators, to_record) -> None:
+    """Run the estimators once on a few synthetic measurements (numba compiles or loads its cache)."""
+    from types import SimpleNamespace
+
+    for k in range(4):
+        m = SimpleNamespace(src=k % 2, t=0.1 * k, y=np.array([10.0, 5.0]), pos=np.array([1.0 * k, 0.0]), k=0)
+        rec = to_record(m)
+        for est in estimators.values():
+            est.add(rec)
+            if hasattr(est, "solve"):
+                est.solve()
 
 
 def build_target(sc: Scenario) -> TargetRole:

@@ -7,6 +7,7 @@
     flocktrack design SCENARIO --out FILE
     flocktrack fault VERB [name=value ...] --run RUN --connect ENDPOINT
     flocktrack compose SCENARIO [--out DIR]
+    flocktrack keys SCENARIO --out DIR            (then: flocktrack run … --secure --keys DIR)
     flocktrack sweep SCENARIO --grid KEY=V1,V2 ... --seeds S --out DIR
     flocktrack metrics RECORDING --out DIR
     flocktrack replay RECORDING [--connect ENDPOINT] [--speed X]
@@ -78,7 +79,8 @@ def cmd_run(args) -> int:
         summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
                                          max_restarts=args.max_restarts, quiet=args.quiet,
                                          dashboard_port=args.dashboard_port if args.dashboard else None,
-                                         keep_dashboard=args.dashboard and not args.no_linger)
+                                         keep_dashboard=args.dashboard and not args.no_linger,
+                                         secure_dir=(args.keys or str(out / "keys")) if args.secure else None)
         if info.get("rc") not in (0, None):
             print(f"error: run ended with code {info['rc']}; see {out}/logs/", file=sys.stderr)
             return 1
@@ -192,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--dashboard", action="store_true", help="zenoh: start the live Viser dashboard")
     r.add_argument("--dashboard-port", type=int, default=8080)
     r.add_argument("--no-linger", action="store_true", help="close the dashboard when the run ends")
+    r.add_argument("--secure", action="store_true",
+                   help="zenoh: TLS + mTLS + per-process passwords + router ACL (keys made in --keys DIR if absent)")
+    r.add_argument("--keys", help="key set directory for --secure (default: OUT/keys)")
     r.add_argument("--ticks", type=int)
     r.add_argument("--seed", type=int)
     r.add_argument("--estimator", choices=["minimax", "kalman", "hinf_switching"])
@@ -224,8 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     rp.add_argument("--dashboard-port", type=int, default=8080)
     rp.set_defaults(fn=cmd_replay)
     from . import compose as _compose
+    from . import keys as _keys
 
     _compose.register(sub)
+    _keys.register(sub)
     try:
         from . import experiment as _experiment
 

@@ -55,13 +55,14 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         pass
 
 
-def open_router(port: int, config_file: Path = LOCAL_ROUTER_CFG, host: str = "127.0.0.1"):
-    """Open the embedded router in this process, listening on tcp/host:port."""
+def open_router(port: int, config_file: Path = LOCAL_ROUTER_CFG, host: str = "127.0.0.1", proto: str = "tcp"):
+    """Open the embedded router in this process, listening on PROTO/host:port (``tls`` with a secure
+    config from ``flocktrack keys``)."""
     from agent.bus import zenoh_config
     import zenoh
 
     zenoh.init_log_from_env_or("error")
-    return zenoh.open(zenoh_config(listen=f"tcp/{host}:{port}", mode="router", config_file=str(config_file)))
+    return zenoh.open(zenoh_config(listen=f"{proto}/{host}:{port}", mode="router", config_file=str(config_file)))
 
 
 @dataclass
@@ -77,6 +78,7 @@ class Child:
     rejoin_flag: str | None = None
     seen_exit: int | None = None
     hold: bool = False  # killed on request (control/kill): stays down until control/restart
+    service: bool = False  # runs until stopped (a mesh host's router): the end of the run does not wait for it
 
     @property
     def pid(self) -> int | None:
@@ -87,11 +89,21 @@ class Launcher:
     def __init__(self, run: str, run_dir: Path, n_sensors: int, scenario_file: Path, design_file: Path | None,
                  mode: str, port: int | None = None, policy: RestartPolicy = RestartPolicy(),
                  record_to: Path | None = None, meta_file: Path | None = None, quiet: bool = False,
-                 extra_children: list[tuple[str, list[str]]] | None = None, dashboard_port: int | None = None):
+                 extra_children: list[tuple[str, list[str]]] | None = None, dashboard_port: int | None = None,
+                 keys=None, mesh=None, fusion: bool = False):
+        self.fusion = bool(fusion)  # start the fusion solver process (scenarios with [uavs]/[fusion])
         self.run, self.run_dir, self.n = run, Path(run_dir), int(n_sensors)
         self.scenario_file, self.design_file, self.mode = scenario_file, design_file, mode
         self.port = port or free_port()
-        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        # keys: a flocktrack.keys.KeySet → the router speaks TLS + mTLS + user/password with the ACL,
+        # and every child connects with its own identity's config (--config)
+        self.keys = keys
+        # mesh: a flocktrack.secure.Mesh → the embedded router is the first host's router (its config,
+        # port, listening on every interface) and the children are placed on their hosts
+        self.mesh = mesh
+        if mesh is not None:
+            self.port = mesh.port
+        self.endpoint = f"tls/localhost:{self.port}" if keys is not None else f"tcp/127.0.0.1:{self.port}"
         self.policy = policy
         self.record_to, self.meta_file = record_to, meta_file
         self.quiet = quiet
@@ -132,12 +144,34 @@ class Launcher:
                               self.run_dir / "logs" / f"agent_{i}.log", rejoin_flag="--rejoin"))
         kids.append(Child("target/0", [py, "-m", "agent", "target", *sc, *mode, *self._common()],
                           RestartPolicy("never"), self.run_dir / "logs" / "target.log"))
+        if self.fusion:
+            kids.append(Child("fusion/0", [py, "-m", "agent", "fusion", *sc, *mode, *self._common()],
+                              RestartPolicy("never"), self.run_dir / "logs" / "fusion.log"))
         expect = ["--expect", "recorder/0"] if self.record_to is not None else []
+        if self.fusion:
+            expect += ["--expect", "fusion/0"]
         for name, _ in self.extra_children:
             expect += ["--expect", name]
         kids.append(Child("world/0", [py, "-m", "topology", *sc, *mode, *expect, *self._common()],
                           RestartPolicy("never"), self.run_dir / "logs" / "world.log"))
+        if self.keys is not None:
+            from .keys import child_identity
+
+            for c in kids:
+                cfg = self.keys.client(child_identity(c.name))
+                if cfg.exists():
+                    c.argv += ["--config", str(cfg)]
+        if self.mesh is not None:
+            kids = self.mesh.place(kids)
         return kids
+
+    def _open_router(self):
+        if self.mesh is not None:
+            return open_router(self.port, config_file=self.mesh.hub_config or LOCAL_ROUTER_CFG,
+                               host=self.mesh.listen_host)
+        if self.keys is None:
+            return open_router(self.port)
+        return open_router(self.port, config_file=self.keys.router(), proto="tls")
 
     def _spawn(self, c: Child, rejoin: bool = False) -> None:
         argv = list(c.argv) + ([c.rejoin_flag] if rejoin and c.rejoin_flag else [])
@@ -162,10 +196,11 @@ class Launcher:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        self.router = open_router(self.port)
+        self.router = self._open_router()
         from agent.bus import ZenohBus
 
-        self.ctl_bus = ZenohBus(self.run, connect=self.endpoint)
+        self.ctl_bus = ZenohBus(self.run, connect=self.endpoint,
+                                config_file=str(self.keys.client("launcher")) if self.keys is not None else None)
         self.ctl_bus.subscribe("control/kill", self._on_control)
         self.ctl_bus.subscribe("control/restart", self._on_control)
         self.ctl_bus.subscribe("world/event", self._on_world_event)
@@ -230,7 +265,7 @@ class Launcher:
         old.close()
         self._event("router", "down")
         time.sleep(down_s)
-        self.router = open_router(self.port)
+        self.router = self._open_router()
         self._event("router", "up")
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
@@ -280,7 +315,8 @@ class Launcher:
                 rc = w.proc.returncode
                 end = time.monotonic() + 20.0
                 while time.monotonic() < end and any(
-                        c.proc and c.proc.poll() is None for n, c in self.children.items() if n != "dashboard/0"):
+                        c.proc and c.proc.poll() is None for n, c in self.children.items()
+                        if n != "dashboard/0" and not c.service):
                     self.supervise_once()
                     time.sleep(0.05)
                 self.supervise_once()

@@ -189,7 +189,8 @@ class MetricsCollector:
         every fusion estimator, scored at the newest window node (filtering) and at the mid-window node
         (smoothing, lagged) against the true position at that node's time stamp."""
         out: dict = {}
-        me = [p - self.truth_position(t) for t, p in self._meas_pos if self.truth_position(t) is not None]
+        meas = sorted(self._meas_pos, key=lambda tp: (tp[0], tuple(tp[1])))  # arrival order must not matter
+        me = [p - self.truth_position(t) for t, p in meas if self.truth_position(t) is not None]
         out["measurement_rmse"] = float(np.sqrt(np.mean(np.sum(np.square(me), axis=1)))) if me else None
         for name in sorted(self._fusion):
             en, em = [], []

@@ -102,13 +102,28 @@ def run_inproc_to_dir(sc: Scenario, data: dict, out: Path, record: bool = False,
 def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = None, restart: str = "never",
                      max_restarts: int = 3, quiet: bool = False, on_poll=None,
                      timeout_s: float | None = None, dashboard_port: int | None = None,
-                     keep_dashboard: bool = False) -> tuple[dict, dict]:
-    """Process per agent over an embedded router; metrics are recomputed from the recording."""
+                     keep_dashboard: bool = False, secure_dir: str | Path | None = None,
+                     mesh=None) -> tuple[dict, dict]:
+    """Process per agent over an embedded router; metrics are recomputed from the recording.
+
+    ``secure_dir``: run secured (TLS + mTLS + user/password + ACL, see flocktrack/keys.py) with the key
+    set in that directory — made there for this run if it holds none; an existing one fixes the run
+    name its ACL was written for.
+
+    ``mesh``: a :class:`flocktrack.secure.Mesh` placing the processes on several hosts, each with its
+    own router (tests/test_multihost.py)."""
     scen_file, design_file, dsg, meta_file = _write_inputs(sc, data, out)
     run = f"{sc.run.name}-{uuid.uuid4().hex[:8]}"
+    keys = None
+    if secure_dir is not None:
+        from .keys import prepare_keys
+
+        keys = prepare_keys(secure_dir, run, sc.sensors.n)
+        run = keys.run
     launcher = Launcher(run, out, sc.sensors.n, scen_file, design_file, sc.run.mode, port=port,
                         policy=RestartPolicy(restart, max_restarts), record_to=out / "recording.mcap",
-                        meta_file=meta_file, quiet=quiet, dashboard_port=dashboard_port)
+                        meta_file=meta_file, quiet=quiet, dashboard_port=dashboard_port, keys=keys,
+                        mesh=mesh, fusion=sc.uav is not None)
     stop_signals = {}
 
     def on_signal(signum, _frame):
@@ -123,6 +138,9 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
         if not quiet:
             print(f"run {run} on {launcher.endpoint} ({sc.sensors.n} sensors, {sc.run.mode}); faults: "
                   f"flocktrack fault VERB --run {run} --connect {launcher.endpoint}", file=sys.stderr)
+            if keys is not None:
+                print(f"secure: TLS + mTLS + user/password + ACL with the keys in {keys.dir} (a client needs "
+                      f"its identity's config, e.g. --config {keys.client('dashboard')})", file=sys.stderr)
         rc = launcher.wait(timeout_s=timeout_s, on_poll=on_poll)
         if keep_dashboard and dashboard_port is not None and rc == 0 and launcher.alive("dashboard/0"):
             print(f"run finished; the dashboard stays up at http://localhost:{dashboard_port} — Ctrl-C to quit",
@@ -139,6 +157,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     rec = read_recording(out / "recording.mcap")
     info = {"transport": "zenoh", "run": run, "rc": rc, "wall_s": wall, "ticks_per_s": sc.run.ticks / wall,
             "router": launcher.endpoint, "recorded_messages": len(rec.messages), "recording_complete": rec.complete,
+            **({"secure": True, "keys": str(keys.dir)} if keys is not None else {}),
             "restarts": {n: c.restarts for n, c in launcher.children.items() if c.restarts},
             "exits": {n: c.exits for n, c in launcher.children.items()}}
     (out / "run.json").write_text(json.dumps(info, indent=2))

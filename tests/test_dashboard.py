@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.wire import Control, End, Estimate, State, Tick, Truth, decode, encode
+from agent.wire import Control, End, Estimate, decode, encode
 from dashboards import plots
 from dashboards.live import LiveDashboard, load_recording, replay_model_from_file
-from dashboards.state import (DashboardState, RateMeter, ReplayModel, RunInfo, algebraic_connectivity_of_links,
+from dashboards.state import (DashboardState, RateMeter, RunInfo, algebraic_connectivity_of_links,
                               synthetic_tick)
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -23,3 +23,10 @@ def test_inproc_fusion_scores(tmp_path):
     assert son < kal and son < bls and son < f["measurement_rmse"], f
     assert f["sum_of_norms"]["rmse_midwindow"] < son  # the smoothed (lagged) estimate is better still
     assert f["sum_of_norms"]["estimates"] > 100
+
+
+def test_zenoh_lockstep_fusion_equals_inproc(tmp_path):
+    args = ["--ticks", "300", "--mode", "lockstep"]
+    assert main(["run", str(SCEN), "--transport", "inproc", *args, "--out", str(tmp_path / "in")]) == 0
+    assert main(["run", str(SCEN), "--transport", "zenoh", "--quiet", *args, "--out", str(tmp_path / "z")]) == 0
+    assert _fusion(tmp_path / "in") == _fusion(tmp_path / "z")

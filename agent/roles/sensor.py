@@ -58,6 +58,7 @@ class SensorRole(Role):
         self._xbuf: dict[tuple[int, int], dict[int, dict]] = {}
         self._prior: np.ndarray | None = None
         self._nbrs: list[int] = []
+        self._dead: set[int] = set()
         self.counters: Counter = Counter()
         self._burst_ticks = 0
         self._burst_mag = 0.0
@@ -217,7 +218,10 @@ class SensorRole(Role):
             self._peer_est[msg.src] = (msg.x_next, msg.P)
 
     def on_member(self, role: str, ident: int, alive: bool) -> None:
-        """A neighbour process vanished: stop waiting for its payloads this tick."""
+        """A neighbour process vanished: stop waiting for its payloads (this tick, and in the ticks the
+        world announced before it noticed)."""
+        if role == "agent":
+            (self._dead.discard if alive else self._dead.add)(ident)
         if role == "agent" and not alive and ident in self._nbrs and self.r >= 0:
             self._nbrs = [j for j in self._nbrs if j != ident]
             self.counters["neighbours_lost"] += 1
@@ -295,7 +299,7 @@ class SensorRole(Role):
     def _neighbours(self) -> list[int]:
         """This tick's alive neighbours (from the world's link table)."""
         t = self._ticks[self.k]
-        return [j for j in t.links[self.i] if t.alive[j]]
+        return [j for j in t.links[self.i] if t.alive[j] and j not in self._dead]
 
     def _sensor_faults(self, y: np.ndarray) -> np.ndarray:
         """Sender-side faults on the measurement: noise × scale, impulsive outliers, a Byzantine bias."""

@@ -1,0 +1,438 @@
+"""Credentials for a secure deployment: a CA, one certificate and one password per process, the router's
+access-control list and one Zenoh config per process — ``flocktrack keys SCENARIO --out DIR``.
+
+Every process of a run has an *identity*: ``router``, ``launcher`` (the supervisor's control client),
+``world``, ``target``, ``recorder``, ``dashboard`` and ``agent-0`` … ``agent-<n-1>``. An identity is
+(certificate common name = user name = identity). The router admits a client only over TLS with a
+client certificate signed by the run's CA (mTLS) *and* the identity's user/password; its access
+control then matches the link to the identity by both (``cert_common_names`` AND ``usernames``) and
+applies that identity's rules, ``default_permission: deny`` for everything else:
+
+=============  ======================================  =============================================
+identity       may put (ingress ``put``)               may read (``declare_subscriber`` in, ``put`` out)
+=============  ======================================  =============================================
+agent-i        ``ft/<run>/agent/<i>/**``               world/tick, world/event, world/end, target/truth,
+                                                       agent/*/xchg, agent/*/estimate, control/**
+target         ``ft/<run>/target/**``                  world/**, agent/*/estimate
+world          ``ft/<run>/world/**``                   agent/*/state, target/state, control/**
+dashboard      ``ft/<run>/control/**``                 ``ft/<run>/**``
+recorder       nothing                                 ``ft/<run>/**``
+launcher       nothing                                 control/**, world/**
+=============  ======================================  =============================================
+
+and each may declare only its own liveliness token ``ft/<run>/alive/<role>/<id>`` (agent-3 →
+``alive/agent/3``) while everyone may watch ``ft/<run>/alive/**``. Nobody may ``delete``, query or
+declare a queryable. Router-to-router links of a mesh (identity ``router`` / ``router-<host>``) are
+trusted with ``ft/<run>/**``.
+
+Files written to DIR (see :class:`KeySet`)::
+
+    keys.json              manifest: run name, identities, endpoint, hosts
+    ca.pem  ca.key         the CA (keep ca.key off the hosts: it is needed only to issue more certs)
+    certs/<id>.pem/.key    one certificate + private key per identity (CN = identity)
+    passwords.txt          the router's user:password dictionary (mode 0600)
+    acl.json5              the access_control block
+    router.json5           the router's full config (broker_cfg/secure.json5 + TLS + auth + ACL)
+    clients/<id>.json5     one client config per process (TLS + mTLS + user/password)
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import ipaddress
+import json
+import os
+import re
+import secrets
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SECURE_TEMPLATE = ROOT / "broker_cfg" / "secure.json5"
+
+ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
+                "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"]
+DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
+
+# what each role reads, relative to ft/<run>/ (the agent's own subscriptions: agent/roles/*.py,
+# topology/world.py, flocktrack/record.py, dashboards/live.py, flocktrack/launch.py)
+READS = {
+    "agent": ["world/tick", "world/event", "world/end", "target/truth", "agent/*/xchg", "agent/*/estimate",
+              "control/**"],
+    "target": ["world/**", "agent/*/estimate"],
+    "world": ["agent/*/state", "target/state", "control/**"],
+    "recorder": ["**"],
+    "dashboard": ["**"],
+    "launcher": ["control/**", "world/**"],
+}
+WRITES = {"agent": None, "target": ["target/**"], "world": ["world/**"], "dashboard": ["control/**"],
+          "recorder": [], "launcher": []}
+TOKENS = {"target": "target/0", "world": "world/0", "recorder": "recorder/0", "dashboard": "dashboard/0"}
+
+
+def identities(n_sensors: int) -> list[str]:
+    """Every identity of a run with ``n_sensors`` sensors (the router first)."""
+    return ["router", "launcher", "world", "target", "recorder", "dashboard",
+            *[f"agent-{i}" for i in range(n_sensors)]]
+
+
+def role_of(ident: str) -> tuple[str, int | None]:
+    """'agent-3' → ('agent', 3); 'world' → ('world', None)."""
+    m = re.fullmatch(r"agent-(\d+)", ident)
+    return ("agent", int(m.group(1))) if m else (ident, None)
+
+
+def child_identity(child_name: str) -> str:
+    """The launcher's child name → identity: 'agent/3' → 'agent-3', 'world/0' → 'world'."""
+    role, _, i = child_name.partition("/")
+    return f"agent-{i}" if role == "agent" else role
+
+
+# ============================================================================ the ACL
+
+def acl(run: str, n_sensors: int, routers: list[str] = ("router",)) -> dict:
+    """The router's ``access_control`` block for run ``run`` (default deny)."""
+    p = f"ft/{run}/"
+    rules: list[dict] = []
+    subjects: list[dict] = []
+    policies: list[dict] = []
+
+    def rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> str:
+        rules.append({"id": rid, "permission": "allow", "flows": flows, "messages": messages,
+                      "key_exprs": [p + k for k in keys]})
+        return rid
+
+    # shared by every client: see who is alive, and see others' subscriptions (a publisher's write
+    # filtering needs the subscribers' declarations)
+    common = [rule("watch-members", ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"], ["alive/**"]),
+              rule("see-members", ["liveliness_token", "reply"], ["egress"], ["alive/**"]),
+              rule("see-subscribers", ["declare_subscriber"], ["egress"], ["**"])]
+    for ident in identities(n_sensors):
+        if ident == "router":
+            continue
+        role, i = role_of(ident)
+        writes = [f"agent/{i}/**"] if role == "agent" else WRITES[role]
+        token = f"agent/{i}" if role == "agent" else TOKENS.get(role)
+        own = []
+        own.append(rule(f"{ident}-read", ["declare_subscriber"], ["ingress"], READS[role]))
+        own.append(rule(f"{ident}-recv", ["put"], ["egress"], READS[role]))
+        if writes:
+            own.append(rule(f"{ident}-write", ["put"], ["ingress"], writes))
+        if token:
+            own.append(rule(f"{ident}-token", ["liveliness_token"], ["ingress"], [f"alive/{token}"]))
+        subjects.append({"id": ident, "cert_common_names": [ident], "usernames": [ident]})
+        policies.append({"id": ident, "rules": own + common, "subjects": [ident]})
+    # router-to-router links of a mesh: trusted with the whole run (they carry everyone's traffic;
+    # each router enforces the rules above on its own clients)
+    trusted = rule("mesh-all", ALL_MESSAGES, ["ingress", "egress"], ["**"])
+    alive = rule("mesh-alive", ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query", "reply"],
+                 ["ingress", "egress"], ["alive/**"])
+    rids = sorted(set(routers))
+    for r in rids:
+        subjects.append({"id": r, "cert_common_names": [r], "usernames": [r]})
+    policies.append({"id": "routers", "rules": [trusted, alive], "subjects": rids})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+# ============================================================================ certificates
+
+def _write_private(path: Path, data: bytes | str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(data, str):
+        data = data.encode()
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+
+
+def _new_key():
+    try:
+        from cryptography.hazmat.primitives.asymmetric import ec
+    except ImportError as exc:  # pragma: no cover - a dependency of the package
+        raise SystemExit("flocktrack keys needs the `cryptography` package: pip install cryptography") from exc
+
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _key_pem(key) -> bytes:
+    from cryptography.hazmat.primitives import serialization
+
+    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                             serialization.NoEncryption())
+
+
+def make_ca(days: int = 365, cn: str = "flocktrack CA"):
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.x509.oid import NameOID
+
+    key = _new_key()
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])
+    now = _dt.datetime.now(_dt.timezone.utc)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - _dt.timedelta(days=1)).not_valid_after(now + _dt.timedelta(days=days))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=False,
+                                         data_encipherment=False, key_agreement=False, key_cert_sign=True,
+                                         crl_sign=True, encipher_only=False, decipher_only=False), critical=True)
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+            .sign(key, hashes.SHA256()))
+    return key, cert
+
+
+def issue(ca_key, ca_cert, cn: str, hosts: list[str] = (), days: int = 365):
+    """A leaf certificate with CN = ``cn`` for both TLS server and client use. Its SANs are DNS:cn plus
+    ``hosts`` (names → DNS, addresses → IP): a client checks the router's certificate against the host
+    name of the endpoint it dials (``tls/localhost:7447`` → DNS:localhost, ``tls/10.0.0.1:7447`` →
+    IP:10.0.0.1)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    key = _new_key()
+    sans: list = [x509.DNSName(cn)]
+    for h in hosts:
+        try:
+            sans.append(x509.IPAddress(ipaddress.ip_address(h)))
+        except ValueError:
+            if x509.DNSName(h) not in sans:
+                sans.append(x509.DNSName(h))
+    now = _dt.datetime.now(_dt.timezone.utc)
+    cert = (x509.CertificateBuilder()
+            .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)]))
+            .issuer_name(ca_cert.subject).public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - _dt.timedelta(days=1)).not_valid_after(now + _dt.timedelta(days=days))
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=False,
+                                         data_encipherment=False, key_agreement=False, key_cert_sign=False,
+                                         crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
+            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                           critical=False)
+            .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+            .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
+            .sign(ca_key, hashes.SHA256()))
+    return key, cert
+
+
+def _cert_pem(cert) -> bytes:
+    from cryptography.hazmat.primitives import serialization
+
+    return cert.public_bytes(serialization.Encoding.PEM)
+
+
+# ============================================================================ configs
+
+def _load_template(path: Path) -> dict:
+    """The json5 template as a dict (comments and trailing commas stripped; keys may be bare)."""
+    text = path.read_text()
+    text = re.sub(r"^\s*//.*$", "", text, flags=re.M)
+    text = re.sub(r"([{,]\s*)([A-Za-z_][A-Za-z0-9_]*)\s*:", r'\1"\2":', text)
+    text = re.sub(r",(\s*[}\]])", r"\1", text)
+    return json.loads(text)
+
+
+def _merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def tls_block(ks_dir: Path, ident: str, listen: bool, connect: bool) -> dict:
+    d = ks_dir.resolve()
+    tls: dict = {"root_ca_certificate": str(d / "ca.pem"), "enable_mtls": True, "verify_name_on_connect": True}
+    if listen:
+        tls["listen_private_key"] = str(d / "certs" / f"{ident}.key")
+        tls["listen_certificate"] = str(d / "certs" / f"{ident}.pem")
+    if connect:
+        tls["connect_private_key"] = str(d / "certs" / f"{ident}.key")
+        tls["connect_certificate"] = str(d / "certs" / f"{ident}.pem")
+    return tls
+
+
+def client_config(ks_dir: Path, ident: str, password: str, endpoint: str, lease_ms: int = 2000,
+                  keep_alive: int = 4) -> dict:
+    return {
+        "mode": "client",
+        "connect": {"endpoints": [endpoint]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {"protocols": ["tls"], "tx": {"lease": lease_ms, "keep_alive": keep_alive},
+                     "tls": tls_block(ks_dir, ident, listen=False, connect=True)},
+            "auth": {"usrpwd": {"user": ident, "password": password}},
+        },
+    }
+
+
+def router_config(ks_dir: Path, ident: str, password: str, listen: list[str], connect: list[str] = (),
+                  acl_block: dict | None = None, template: Path = SECURE_TEMPLATE) -> dict:
+    conf = _load_template(template)
+    conf = _merge(conf, {
+        "mode": "router",
+        "listen": {"endpoints": list(listen)},
+        "connect": {"endpoints": list(connect)},
+        "transport": {
+            "link": {"protocols": ["tls"], "tls": tls_block(ks_dir, ident, listen=True, connect=bool(connect))},
+            "auth": {"usrpwd": {"user": ident, "password": password,
+                                "dictionary_file": str((ks_dir / "passwords.txt").resolve())}},
+        },
+    })
+    if acl_block is not None:
+        conf["access_control"] = acl_block
+    return conf
+
+
+def _dump(path: Path, conf: dict, header: str) -> None:
+    _write_private(path, f"// {header}\n" + json.dumps(conf, indent=2) + "\n")
+
+
+def format_acl(block: dict, header: str) -> str:
+    """The ``access_control`` block as json5 text, one rule / subject / policy per line."""
+    lines = [f"// {h}" for h in header.splitlines()]
+    lines.append("{")
+    lines.append(f'  "enabled": {json.dumps(block["enabled"])},')
+    lines.append(f'  "default_permission": {json.dumps(block["default_permission"])},')
+    for part in ("rules", "subjects", "policies"):
+        lines.append(f'  "{part}": [')
+        lines += [f"    {json.dumps(item)}," for item in block[part]]
+        lines.append("  ],")
+    lines.append("}")
+    return "\n".join(lines) + "\n"
+
+
+# ============================================================================ key sets
+
+@dataclass
+class KeySet:
+    """A directory made by :func:`make_keys`."""
+
+    dir: Path
+    run: str
+    n_sensors: int
+    endpoint: str
+    hosts: list[str] = field(default_factory=list)
+    routers: list[str] = field(default_factory=lambda: ["router"])
+
+    def client(self, ident: str) -> Path:
+        return self.dir / "clients" / f"{ident}.json5"
+
+    def router(self, ident: str = "router") -> Path:
+        return self.dir / ("router.json5" if ident == "router" else f"{ident}.json5")
+
+    def password(self, ident: str) -> str:
+        for line in (self.dir / "passwords.txt").read_text().splitlines():
+            user, _, pw = line.partition(":")
+            if user == ident:
+                return pw
+        raise KeyError(ident)
+
+    def cert(self, ident: str) -> tuple[Path, Path]:
+        return self.dir / "certs" / f"{ident}.pem", self.dir / "certs" / f"{ident}.key"
+
+    @property
+    def ca(self) -> Path:
+        return self.dir / "ca.pem"
+
+
+def make_keys(out: str | Path, run: str, n_sensors: int, endpoint: str = "tls/localhost:7447",
+              hosts: list[str] = DEFAULT_HOSTS, routers: list[str] = ("router",), lease_ms: int = 2000,
+              days: int = 365) -> KeySet:
+    """Write a complete key set for run ``run`` with ``n_sensors`` sensors to ``out``.
+
+    ``routers``: the router identities (one per host in a mesh); each gets a certificate valid for
+    ``hosts`` and its own ``<ident>.json5`` besides the default ``router.json5``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    routers = list(dict.fromkeys(["router", *routers]))
+    ca_key, ca_cert = make_ca(days)
+    _write_private(out / "ca.key", _key_pem(ca_key))
+    (out / "ca.pem").write_bytes(_cert_pem(ca_cert))
+    passwords: dict[str, str] = {}
+    idents = identities(n_sensors) + [r for r in routers if r != "router"]
+    for ident in idents:
+        key, cert = issue(ca_key, ca_cert, ident, hosts=list(hosts) if ident in routers else [], days=days)
+        _write_private(out / "certs" / f"{ident}.key", _key_pem(key))
+        (out / "certs" / f"{ident}.pem").write_bytes(_cert_pem(cert))
+        passwords[ident] = secrets.token_urlsafe(24)
+    _write_private(out / "passwords.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    block = acl(run, n_sensors, routers)
+    (out / "acl.json5").write_text(format_acl(block, f"access_control for run {run} ({n_sensors} sensors), generated "
+                                                     f"by `flocktrack keys`; it is also in router.json5"))
+    port = endpoint.rsplit(":", 1)[-1]
+    for r in routers:
+        conf = router_config(out, r, passwords[r], [f"tls/[::]:{port}"], acl_block=block)
+        _dump(out / ("router.json5" if r == "router" else f"{r}.json5"), conf,
+              f"router {r} of run {run} (generated by flocktrack keys)")
+    for ident in idents:
+        if ident in routers:
+            continue
+        _dump(out / "clients" / f"{ident}.json5", client_config(out, ident, passwords[ident], endpoint, lease_ms),
+              f"client {ident} of run {run} (generated by flocktrack keys)")
+    manifest = {"run": run, "n_sensors": n_sensors, "endpoint": endpoint, "hosts": list(hosts),
+                "routers": routers, "identities": idents}
+    (out / "keys.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return KeySet(out, run, n_sensors, endpoint, list(hosts), routers)
+
+
+def load_keys(path: str | Path) -> KeySet:
+    path = Path(path)
+    m = json.loads((path / "keys.json").read_text())
+    return KeySet(path, m["run"], int(m["n_sensors"]), m["endpoint"], m.get("hosts", []), m.get("routers", ["router"]))
+
+
+# ============================================================================ CLI
+
+def cmd_keys(args) -> int:
+    from .cli import scenario_data
+    from agent.scenario import parse_scenario
+
+    data = scenario_data(args.scenario, args.set or [])
+    sc = parse_scenario(data, args.scenario)
+    run = args.run or sc.run.name
+    hosts = list(DEFAULT_HOSTS) + [h for h in (args.host or []) if h not in DEFAULT_HOSTS]
+    routers = ["router"] + [f"router-{r}" for r in (args.router or [])]
+    ks = make_keys(args.out, run, sc.sensors.n, endpoint=f"tls/{args.endpoint_host}:{args.port}", hosts=hosts,
+                   routers=routers)
+    print(f"wrote {ks.dir}: CA, {len(identities(sc.sensors.n)) + len(routers) - 1} certificates and passwords, "
+          f"acl.json5 and router.json5 for run {run!r} ({sc.sensors.n} sensors); clients/<id>.json5 connect to "
+          f"{ks.endpoint}.\nrun it: flocktrack run {args.scenario} --secure --keys {ks.dir} --out DIR",
+          file=sys.stderr)
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``flocktrack keys SCENARIO --out DIR`` to the CLI."""
+    k = subparsers.add_parser("keys", help="make a CA, per-process certificates/passwords, the router ACL and configs")
+    k.add_argument("scenario")
+    k.add_argument("--out", required=True, help="directory for the key set")
+    k.add_argument("--run", help="run name the ACL is written for (key prefix ft/<run>/); default: the scenario's")
+    k.add_argument("--port", type=int, default=7447, help="router TLS port the client configs connect to")
+    k.add_argument("--endpoint-host", default="localhost", help="host name the clients dial (must be in the SANs)")
+    k.add_argument("--host", action="append", metavar="NAME|IP",
+                   help="extra router SAN (repeat): a host name or address the clients dial the router by")
+    k.add_argument("--router", action="append", metavar="HOST",
+                   help="an extra mesh router identity router-HOST (repeat)")
+    k.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a scenario key")
+    k.set_defaults(fn=cmd_keys)
+
+
+
+
+def prepare_keys(path: str | Path, run: str, n_sensors: int) -> KeySet:
+    """The key set in ``path`` (it must cover ``n_sensors`` sensors), or a new one for ``run`` there."""
+    path = Path(path)
+    if (path / "keys.json").exists():
+        ks = load_keys(path)
+        if ks.n_sensors < n_sensors:
+            raise ValueError(f"{path} has credentials for {ks.n_sensors} sensors, the scenario has {n_sensors}: "
+                             f"make a new set with `flocktrack keys SCENARIO --out DIR`")
+        return ks
+    return make_keys(path, run, n_sensors)
+
+
+__all__ = ["make_keys", "load_keys", "prepare_keys", "KeySet", "acl", "identities", "child_identity", "register",
+           "issue", "make_ca"]

@@ -1,0 +1,191 @@
+"""Hosts without Docker: Linux network namespaces joined by a switch, for the multi-host tests.
+
+:class:`Network` makes ``n`` "hosts" (namespaces ``ft<tag>h<i>``, each with ``lo`` and ``eth0`` =
+10.213.0.<i+1>/24) cabled by veth pairs to a bridge that lives in its own namespace ``ft<tag>sw`` — so
+no address of the test network exists in the root namespace and none of its traffic leaves the
+namespaces. :meth:`Network.cut` / :meth:`Network.heal` take a host's switch port down / up (its cable
+is pulled: the host sees no carrier, the others see silence). Names are unique per test run; the
+namespaces, and with them every veth and the bridge, are deleted by :meth:`Network.close` (also on
+failure and at interpreter exit), after killing what still runs inside them.
+
+``python tests/netns.py mesh-run SPEC.json`` is run *inside* the first host by the tests: it runs a
+scenario with :func:`flocktrack.run.run_zenoh_to_dir` and a :class:`flocktrack.secure.Mesh` whose other
+hosts are reached with ``ip netns exec``, optionally cuts a host's link at a tick and heals it, and
+writes the timeline of what the first host saw (liveliness of every process, cut/heal instants).
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SUBNET = "10.213.0"
+
+
+def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", *args], check=check, capture_output=True, text=True)
+
+
+def available() -> str | None:
+    """None if namespaces can be made here, else why not."""
+    if shutil.which("ip") is None:
+        return "iproute2 (ip) is not installed"
+    if os.geteuid() != 0:
+        return "needs root (ip netns)"
+    name = f"ftprobe{uuid.uuid4().hex[:6]}"
+    r = _ip("netns", "add", name, check=False)
+    if r.returncode != 0:
+        return f"ip netns add failed: {r.stderr.strip()}"
+    _ip("netns", "del", name, check=False)
+    return None
+
+
+class Network:
+    def __init__(self, n_hosts: int, tag: str | None = None):
+        self.tag = tag or uuid.uuid4().hex[:6]
+        self.switch = f"ft{self.tag}sw"
+        self.hosts = [f"ft{self.tag}h{i}" for i in range(n_hosts)]
+        self.addrs = [f"{SUBNET}.{i + 1}" for i in range(n_hosts)]
+        self._made: list[str] = []
+        atexit.register(self.close)
+        try:
+            self._build()
+        except Exception:
+            self.close()
+            raise
+
+    def _build(self) -> None:
+        for ns in [self.switch, *self.hosts]:
+            _ip("netns", "add", ns)
+            self._made.append(ns)
+            _ip("-n", ns, "link", "set", "lo", "up")
+        _ip("-n", self.switch, "link", "add", "br0", "type", "bridge")
+        _ip("-n", self.switch, "link", "set", "br0", "up")
+        for i, ns in enumerate(self.hosts):
+            port = f"p{i}"
+            _ip("link", "add", "eth0", "netns", ns, "type", "veth", "peer", "name", port, "netns", self.switch)
+            _ip("-n", self.switch, "link", "set", port, "master", "br0")
+            _ip("-n", self.switch, "link", "set", port, "up")
+            _ip("-n", ns, "addr", "add", f"{self.addrs[i]}/24", "dev", "eth0")
+            _ip("-n", ns, "link", "set", "eth0", "up")
+
+    def wrap(self, i: int) -> list[str]:
+        """argv prefix that runs a command on host i."""
+        return ["ip", "netns", "exec", self.hosts[i]]
+
+    def run(self, i: int, *argv: str, **kw) -> subprocess.CompletedProcess:
+        return subprocess.run([*self.wrap(i), *argv], **kw)
+
+    def cut(self, i: int) -> None:
+        _ip("-n", self.switch, "link", "set", f"p{i}", "down")
+
+    def heal(self, i: int) -> None:
+        _ip("-n", self.switch, "link", "set", f"p{i}", "up")
+
+    def close(self) -> None:
+        """Kill what still runs in our namespaces (only processes started there by this test), then
+        delete them."""
+        for ns in reversed(self._made):
+            r = _ip("netns", "pids", ns, check=False)
+            for pid in r.stdout.split():
+                try:
+                    os.kill(int(pid), signal.SIGKILL)
+                except (ProcessLookupError, ValueError):
+                    pass
+        for ns in reversed(self._made):
+            _ip("netns", "del", ns, check=False)
+        self._made.clear()
+
+    def __enter__(self) -> "Network":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ============================================================================ inside the first host
+
+class CutAndWatch:
+    """on_poll hook of the mesh run: watch liveliness and ticks from the first host; at tick
+    ``cut_at`` take host ``victim``'s switch port down, bring it up ``down_s`` later."""
+
+    def __init__(self, spec: dict):
+        self.spec = spec
+        self.bus = None
+        self.timeline: list[dict] = []
+        self.seen_k = -1
+        self.cut_t: float | None = None
+        self.heal_t: float | None = None
+
+    def _note(self, what: str, **kw) -> None:
+        self.timeline.append({"t": time.time(), "event": what, **kw})
+
+    def __call__(self, launcher) -> None:
+        if self.bus is None:
+            from agent.bus import ZenohBus
+
+            self.bus = ZenohBus(launcher.run, connect=launcher.endpoint)
+            self.bus.subscribe("world/tick", self._on_tick)
+            self.bus.watch_members(lambda name, alive: self._note("member", name=name, alive=alive))
+        self.bus.poll(0)
+        cut = self.spec.get("cut")
+        if not cut:
+            return
+        if self.cut_t is None and self.seen_k >= cut["at_tick"]:
+            _ip("-n", cut["switch"], "link", "set", cut["port"], "down")
+            self.cut_t = time.time()
+            self._note("cut", k=self.seen_k, port=cut["port"])
+        elif self.cut_t is not None and self.heal_t is None and time.time() - self.cut_t >= cut["down_s"]:
+            _ip("-n", cut["switch"], "link", "set", cut["port"], "up")
+            self.heal_t = time.time()
+            self._note("heal", k=self.seen_k, port=cut["port"])
+
+    def _on_tick(self, key: str, msg) -> None:
+        if msg.k > self.seen_k:
+            self.seen_k = msg.k
+            self._note("tick", k=msg.k, alive=[bool(a) for a in msg.alive])
+
+    def close(self) -> None:
+        if self.bus is not None:
+            self.bus.close()
+
+
+def mesh_run(spec_file: str) -> int:
+    """Run the spec's scenario over a mesh (this process is on host 0)."""
+    sys.path.insert(0, str(ROOT))
+    from agent.scenario import parse_scenario
+    from flocktrack.cli import scenario_data
+    from flocktrack.run import run_zenoh_to_dir
+    from flocktrack.secure import Host, Mesh
+
+    spec = json.loads(Path(spec_file).read_text())
+    out = Path(spec["out"])
+    data = scenario_data(spec["scenario"], spec.get("set", []))
+    sc = parse_scenario(data, spec["scenario"])
+    hosts = [Host(name=h["name"], wrap=h["wrap"], router_config=Path(h["router"]) if h.get("router") else None)
+             for h in spec["hosts"]]
+    mesh = Mesh(hosts, where=spec["where"], hub_config=Path(spec["hub_config"]))
+    hook = CutAndWatch(spec)
+    try:
+        summary, info = run_zenoh_to_dir(sc, data, out, quiet=True, on_poll=hook, timeout_s=spec.get("timeout_s", 240),
+                                         mesh=mesh)
+    finally:
+        hook.close()
+    (out / "timeline.json").write_text(json.dumps(hook.timeline, indent=1))
+    return 0 if info.get("rc") == 0 else 1
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "mesh-run":
+        sys.exit(mesh_run(sys.argv[2]))
+    print("usage: python tests/netns.py mesh-run SPEC.json", file=sys.stderr)
+    sys.exit(2)
