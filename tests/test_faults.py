@@ -42,8 +42,9 @@ WORLD_SENSOR_TARGET_PLAN = [
 
 
 def test_world_sensor_and_target_faults_over_zenoh(tmp_path):
+    # lockstep with a long deadline: on a loaded machine a deadline firing would change the numbers
     data, sc = _scenario("gu_hu_normal.toml", WORLD_SENSOR_TARGET_PLAN,
-                         **{"run.ticks": 200, "run.mode": "lockstep"})
+                         **{"run.ticks": 200, "run.mode": "lockstep", "run.deadline_s": 30.0})
     summary, info = run_zenoh_to_dir(sc, data, tmp_path, quiet=True, timeout_s=600)
     assert info["rc"] == 0
     rec = read_recording(tmp_path / "recording.mcap")
