@@ -9,7 +9,7 @@ no CSV, no scenario parsing (that is :mod:`flocktrack.experiment`'s job).
   other keys (a categorical key gets error bars instead of a band);
 * :func:`mean_ci` — the bootstrap confidence interval both use (also used for the sweep's summary CSV).
 
-The y axis turns logarithmic by itself when the values span more than two decades (a diverging Kalman
+The y axis turns logarithmic by itself when the values span more than ~1.3 decades (a diverging Kalman
 filter next to a bounded minimax one). Drawing uses the object API (``Figure`` + Agg canvas), so nothing
 here touches pyplot's global state or the process's matplotlib backend.
 
@@ -26,8 +26,9 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-#: values spanning more than this ratio (max / 5th percentile of the positive values) get a log y axis
-LOG_RATIO = 100.0
+#: values spanning more than this ratio (max / 5th percentile of the positive values, ≈ 1.3 decades) get a
+#: log y axis
+LOG_RATIO = 20.0
 
 
 # --------------------------------------------------------------------------- statistics
@@ -51,7 +52,7 @@ def mean_ci(values: Sequence[float], level: float = 0.95, n_boot: int = 2000, se
 
 
 def wants_log(values) -> bool:
-    """True when the finite positive values span more than two decades."""
+    """True when the finite positive values span more than :data:`LOG_RATIO` (max over the 5th percentile)."""
     v = np.asarray(values, float).ravel()
     v = v[np.isfinite(v) & (v > 0)]
     if v.size < 2:
@@ -207,6 +208,7 @@ def metric_vs_param(series: Sequence[Series], path: str | Path, *, xlabel: str, 
             ax.fill_between(xs[order], lo[order], hi[order], color=c, alpha=0.2, lw=0)
     if categorical:
         ax.set_xticks(range(len(cats)), [str(x) for x in cats])
+        ax.set_xlim(-0.6, len(cats) - 0.4)
     else:
         ticks = sorted({float(x) for s in series for x in s.x})
         if len(ticks) <= 12:  # the grid values themselves, not 1.25, 1.5, …
