@@ -35,6 +35,7 @@ import multiprocessing as mp
 import os
 import re
 import shutil
+import signal
 import sys
 import time
 import tomllib
@@ -440,12 +441,31 @@ def run_sweep(cfg: SweepConfig) -> dict:
     return meta
 
 
+def _worker_init() -> None:
+    # Ctrl-C goes to the whole process group; the parent alone decides (it terminates the workers), so a
+    # worker neither dies half-way through writing nor swallows the interrupt and takes the next run
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what has not started and terminate the workers (ours) of a pool, without waiting for runs."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in procs:
+        proc.join(timeout=5)
+
+
 def _run_pool(tasks: list[dict], jobs: int, results: dict, prog: SweepProgress) -> None:
     pending = list(tasks)
     while pending:  # a worker killed by the OS breaks the pool: record its runs, start a new pool for the rest
         # spawn, not fork: the parent may run rich's refresh thread, and forking a threaded process can
         # leave a lock held in the child
-        with ProcessPoolExecutor(max_workers=min(jobs, len(pending)), mp_context=mp.get_context("spawn")) as pool:
+        pool = ProcessPoolExecutor(max_workers=min(jobs, len(pending)), mp_context=mp.get_context("spawn"),
+                                   initializer=_worker_init)
+        try:
             futs = {pool.submit(_execute, t): t for t in pending}
             pending = []
             broken = False
@@ -469,6 +489,10 @@ def _run_pool(tasks: list[dict], jobs: int, results: dict, prog: SweepProgress) 
                                "error": f"{type(exc).__name__}: {exc}"}
                     results[res["run_id"]] = res
                     prog.advance(res)
+        except BaseException:  # Ctrl-C / SIGTERM: stop now; finished runs are kept, the rest resumes next time
+            _stop_pool(pool)
+            raise
+        pool.shutdown(wait=True)
 
 
 def _old_wall(run_dir: Path) -> float | None:
@@ -759,7 +783,19 @@ def config_from_args(args: argparse.Namespace) -> SweepConfig:
 def cmd_sweep(args: argparse.Namespace) -> int:
     """Run the sweep; ScenarioError (bad grid) propagates to the CLI, which prints it and exits 2."""
     cfg = config_from_args(args)
-    meta = run_sweep(cfg)
+
+    def on_term(_signum, _frame):
+        raise KeyboardInterrupt
+
+    old_term = signal.signal(signal.SIGTERM, on_term)  # SIGTERM stops the workers too, like Ctrl-C
+    try:
+        meta = run_sweep(cfg)
+    except KeyboardInterrupt:
+        print(f"\nsweep interrupted; finished runs are kept in {cfg.out}/runs/ — run the same command again to "
+              f"resume", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
     out = Path(cfg.out)
     print(f"sweep {cfg.scenario}: {meta['ok']}/{meta['runs']} runs ok"
           + (f", {meta['failed']} failed (see {out}/sweep.json)" if meta["failed"] else "")

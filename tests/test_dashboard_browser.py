@@ -103,6 +103,7 @@ def drive_browser(port: int, out: dict, shots: Path) -> None:
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             page = browser.new_page(viewport=VIEWPORT)
+            page.set_default_timeout(180_000)  # a software-rendered page on a loaded 2-core machine is slow
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
             mark("port open")
@@ -270,6 +271,7 @@ def test_replay_page_time_slider(session, tmp_path):
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.set_default_timeout(180_000)
             page.goto(f"http://127.0.0.1:{port}/")
             page.wait_for_function("() => document.body.innerText.includes('· replay')", timeout=60_000)
             page.wait_for_function("() => /tick 0 \\(world at \\d+\\)/.test(document.body.innerText)", timeout=30_000)
