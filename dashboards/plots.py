@@ -83,6 +83,17 @@ def circle_segments(centres: np.ndarray, radius: float, nseg: int = 32) -> np.nd
     return seg.reshape(-1, 2, 3).astype(np.float32)
 
 
+def grid_segments(half_width: float, cell: float) -> np.ndarray:
+    """(·, 2, 3) float32: a square ground grid in the xy plane, ±``half_width``, lines every ``cell``."""
+    m = max(1, int(half_width // cell))
+    v = np.arange(-m, m + 1) * cell
+    e = m * cell
+    xs = np.stack([np.stack([v, np.full_like(v, -e), np.zeros_like(v)], 1),
+                   np.stack([v, np.full_like(v, e), np.zeros_like(v)], 1)], 1)
+    ys = xs[:, :, [1, 0, 2]]
+    return np.concatenate([xs, ys]).astype(np.float32)
+
+
 def polyline_segments(points: np.ndarray) -> np.ndarray:
     """(L−1, 2, 3) float32 segments joining consecutive points."""
     p = np.asarray(points, float).reshape(-1, 3)
@@ -269,8 +280,11 @@ def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = N
                             _X_SCALE, _axes("disagreement")))
 
     # 4. algebraic connectivity
-    panels.append(PanelSpec("lambda2", "Algebraic connectivity λ₂ and links", (k, series["lambda2"], series["links"]),
-                            (_x_series(), _line("λ₂", "#17becf", 1.8), _line("links", "#bbbbbb", 1.0, scale="links")),
+    l2a = series.get("lambda2_alive", series["lambda2"])
+    panels.append(PanelSpec("lambda2", "Algebraic connectivity λ₂ and links",
+                            (k, series["lambda2"], l2a, series["links"]),
+                            (_x_series(), _line("λ₂", "#17becf", 1.8), _line("λ₂ alive", "#17becf", 1.2, dash=[4, 3]),
+                             _line("links", "#bbbbbb", 1.0, scale="links")),
                             {**_X_SCALE, "links": {"auto": True}}, _axes("λ₂", right="links")))
 
     # 5. message rate and dropped messages per second

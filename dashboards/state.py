@@ -291,7 +291,7 @@ class SeriesBuffer:
 
 
 SERIES_COLUMNS = ["k", "t", "rmse", "tmsee", "tmsee_lower", "disagreement", "mean_err", "fusion_err",
-                  "lambda2", "links", "reporting", "missing", "msg_rate", "drop_rate", "wall"]
+                  "lambda2", "lambda2_alive", "links", "reporting", "missing", "msg_rate", "drop_rate", "wall"]
 
 
 # ============================================================================ the model
@@ -469,6 +469,13 @@ class DashboardState:
             row["tmsee_lower"] = lower[f.k]
         if f.tick is not None:
             row["lambda2"] = self._lambda2(f.tick.links)
+            # λ₂ of the graph of the alive sensors (a dead sensor, isolated, makes λ₂ of the whole graph 0)
+            alive = [i for i in range(len(f.tick.links)) if len(f.tick.alive) != len(f.tick.links) or f.tick.alive[i]]
+            if len(alive) == len(f.tick.links):
+                row["lambda2_alive"] = row["lambda2"]
+            else:
+                idx = {i: j for j, i in enumerate(alive)}
+                row["lambda2_alive"] = self._lambda2([[idx[j] for j in f.tick.links[i] if j in idx] for i in alive])
             row["links"] = sum(len(nb) for nb in f.tick.links) // 2
         exp = f.expected(n)
         missing = sum((i not in f.est) + (i not in f.state_pos) for i in exp)

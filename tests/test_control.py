@@ -44,6 +44,30 @@ def test_world_link_faults_and_heal():
     assert not w.apply_control("no_such_verb", {})
 
 
+def test_a_paused_realtime_world_holds_its_clock_through_deadlines():
+    sc = load_scenario(SCEN / "gu_hu_normal.toml")
+    w = build_world(sc, realtime=True)
+    w.attach(LocalBus())
+    w.start()
+    w.on_timer(0.0)
+    k0 = w.k
+    assert w.apply_control("pause", {})
+    w.on_timer(0.5 * w.period)             # paused half-way through tick 0
+    for s in range(1, 50):                 # wall time passes, deadlines fire: nothing moves
+        w.on_timer(s * 10 * w.period)
+        w.on_deadline()
+    assert w.k == k0
+    assert w.apply_control("resume", {})
+    w.on_timer(490.4 * w.period)        # resumed: tick 0 still has half a period to go
+    assert w.k == k0
+    w.on_timer(490.8 * w.period)
+    assert w.k == k0
+    w.on_timer(491.0 * w.period)
+    assert w.k == k0 + 1
+    w.on_deadline()                        # unpaused, the guard works again
+    assert w.k == k0 + 2
+
+
 def test_controls_end_to_end_over_zenoh(tmp_path):
     data = scenario_data(str(SCEN / "gu_hu_normal.toml"), [], **{"run.ticks": 160, "run.mode": "lockstep"})
     sc = parse_scenario(data, "gu_hu_normal.toml")

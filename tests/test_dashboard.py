@@ -199,6 +199,8 @@ def test_dead_sensors_are_not_missing_and_are_grey():
     assert st.finalized_k == 3 and st.missing_total == 0
     snap = st.snapshot()
     assert not snap.alive[3] and np.isnan(snap.errors[3]) and snap.neighbours[3] == []
+    s = st.series()
+    assert np.all(s["lambda2"] == 0) and np.all(s["lambda2_alive"] > 0)   # the dead sensor is isolated
     sa = plots.scene_arrays(snap, selected=3, error_scale=1.0, link_range=12.0)
     assert tuple(sa.sensor_colors[3]) == tuple(plots.DEAD)
     assert sa.ellipse.shape[0] == 0 and sa.selected_links.shape[0] == 0

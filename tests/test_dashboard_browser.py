@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import io
 import os
-import re
 import shutil
 import socket
 import threading
@@ -61,11 +60,6 @@ def _wait_port(port: int, timeout: float) -> bool:
     return False
 
 
-def _status_tick(page) -> int:
-    m = re.search(r"tick (\d+) \(world", page.inner_text("body"))
-    return int(m.group(1)) if m else -1
-
-
 def canvas_stats(png: bytes, box: dict) -> dict:
     """Pixel statistics of the 3-D canvas area of a screenshot."""
     from PIL import Image
@@ -85,35 +79,66 @@ CLOSE_NOTICE = "() => document.querySelector('#webgl-software-rendering button')
 DOCS = bool(os.environ.get("FLOCKTRACK_DOCS_SCREENSHOTS"))
 VIEWPORT = {"width": 1600, "height": 1000} if DOCS else {"width": 1280, "height": 800}
 FIRST_SHOT_TICK = 150 if DOCS else 25   # docs: a longer run and more history in the plots
-RUN_TICKS = 700 if DOCS else 420       # realtime, 0.16 s per tick: ~70 s (the page needs time on 2 cores)
+RUN_TICKS = 500 if DOCS else 260       # realtime, 0.16 s per tick, plus the time the page holds it paused
+SHOW_TICK = "() => { const m = document.body.innerText.match(/tick (\\d+) \\(world/); return m ? +m[1] : -1; }"
 
 
-def drive_browser(port: int, out: dict, shots: Path) -> None:
-    """The browser side of the session (runs in its own thread while the run goes)."""
+class WorldWatch:
+    """on_poll hook: the run's current tick, seen through our own Zenoh client (to tell how far the
+    page lags behind the run)."""
+
+    def __init__(self):
+        self.bus, self.k = None, -1
+
+    def __call__(self, launcher):
+        if self.bus is None:
+            from agent.bus import ZenohBus
+
+            self.bus = ZenohBus(launcher.run, connect=launcher.endpoint)
+            self.bus.subscribe("world/tick", lambda key, m: setattr(self, "k", max(self.k, m.k)))
+        self.bus.poll(0)
+
+    def close(self):
+        if self.bus is not None:
+            self.bus.close()
+
+
+def _wait_tick(page, k: int, timeout_ms: int = 120_000) -> None:
+    page.wait_for_function(f"k => ({SHOW_TICK})() >= k", arg=k, timeout=timeout_ms, polling=500)
+
+
+def drive_browser(port: int, out: dict, shots: Path, world: WorldWatch) -> None:
+    """The browser side of the session (runs in its own thread while the run goes).
+
+    A software-rendered page on a busy 2-core machine can fall behind the run and take seconds per
+    click; so the page first catches up with the run, then pauses it (through its own Pause button) for
+    the pictures and the fault clicks, and resumes it."""
     from playwright.sync_api import sync_playwright
 
     t0 = time.monotonic()
     out["timeline"] = timeline = []
 
     def mark(what: str, page=None) -> None:
-        timeline.append((round(time.monotonic() - t0, 1), what, _status_tick(page) if page else None))
+        timeline.append((round(time.monotonic() - t0, 1), what, page.evaluate(SHOW_TICK) if page else None, world.k))
 
     try:
         assert _wait_port(port, 120), f"the dashboard never listened on {port}"
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             page = browser.new_page(viewport=VIEWPORT)
-            page.set_default_timeout(180_000)  # a software-rendered page on a loaded 2-core machine is slow
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
             mark("port open")
             page.goto(f"http://127.0.0.1:{port}/")
-            mark("page loaded", page)
-            # the scene is live once the status shows the flock a few ticks in
-            page.wait_for_function(
-                "() => { const m = document.body.innerText.match(/tick (\\d+) \\(world/); return m && +m[1] >= %d; }" % FIRST_SHOT_TICK,
-                timeout=120_000)
+            _wait_tick(page, FIRST_SHOT_TICK)                 # the scene is live, a few ticks in
             mark("scene", page)
+            _wait_tick(page, world.k - 8)                     # caught up with the run
+            mark("caught up", page)
+            page.get_by_role("button", name="Pause").click()
+            page.wait_for_function("() => /· paused/.test(document.body.innerText)", timeout=120_000, polling=500)
+            out["pause_tick"] = page.evaluate(SHOW_TICK)
+            mark("paused", page)
+
             page.evaluate(CLOSE_NOTICE)
             page.wait_for_timeout(1500)
             boxes = page.evaluate("""() => [...document.querySelectorAll('canvas')].map(c => {
@@ -123,38 +148,43 @@ def drive_browser(port: int, out: dict, shots: Path) -> None:
             png = page.screenshot()
             (shots / "dashboard.png").write_bytes(png)
             out["overview_png"] = png
-            out["overview_tick"] = _status_tick(page)
-            mark("overview shot", page)
+            out["overview_tick"] = page.evaluate(SHOW_TICK)
             out["uplot_count"] = page.locator(".uplot").count()
             out["uplot_titles"] = page.locator(".uplot .u-title").all_inner_texts()
             out["uplot_canvas_sizes"] = page.evaluate(
                 "() => [...document.querySelectorAll('.uplot canvas')].map(c => c.width * c.height)")
+            mark("overview shot", page)
 
             # fault buttons: drop the link 0–1 (the Link a / Link b defaults), kill sensor 3 (control/**)
             assert page.get_by_label("Link a").input_value() == str(LINK[0])
             assert page.get_by_label("Link b").input_value() == str(LINK[1])
             page.get_by_label("Sensor id").fill(str(VICTIM))
             page.get_by_label("Sensor id").press("Enter")
-            out["click_tick"] = _status_tick(page)
+            out["click_tick"] = page.evaluate(SHOW_TICK)
             page.get_by_role("button", name="Drop link").click()
             page.get_by_role("button", name="Kill sensor").click()
-            mark("clicked", page)
+            page.wait_for_function("() => document.body.innerText.includes('last event: link_drop')",
+                                   timeout=120_000, polling=500)   # the world acknowledged it on world/event
+            out["ack_text"] = page.inner_text("body")
+            mark("faults", page)
+            page.wait_for_timeout(2000)
+            page.get_by_role("button", name="Resume").click()
+            page.wait_for_function("() => document.body.innerText.includes('last event: resume')",
+                                   timeout=120_000, polling=500)
+            mark("resumed", page)
 
-            # inspect a sensor: pick it in the dropdown, zoom in, look at its panel
+            # inspect a sensor: pick it in the dropdown, zoom in, look at its panel once the kill shows
             page.get_by_label("Sensor", exact=True).click()
             page.get_by_role("option", name="4", exact=True).click()
-            page.wait_for_function("() => document.body.innerText.includes('sensor 4 ·')", timeout=30_000)
+            page.wait_for_function("() => document.body.innerText.includes('sensor 4 ·')", timeout=120_000,
+                                   polling=500)
             box = out["canvas_box"]
             page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
-            for _ in range(6):
+            for _ in range(3):
                 page.mouse.wheel(0, -300)
-            # the world acknowledges the link drop on world/event; the status line shows it
-            page.wait_for_function("() => document.body.innerText.includes('last event: link_drop')",
-                                   timeout=30_000)
-            out["ack_text"] = page.inner_text("body")
-            mark("acknowledged", page)
-            page.wait_for_timeout(3000)  # the kill shows once the sensor's liveliness token is gone
+            _wait_tick(page, out["click_tick"] + 40)
             page.evaluate(CLOSE_NOTICE)
+            page.wait_for_timeout(1000)
             (shots / "dashboard_inspect.png").write_bytes(page.screenshot())
             out["inspect_text"] = page.inner_text("body")
             mark("inspected", page)
@@ -180,14 +210,19 @@ def session(tmp_path_factory):
     sc = parse_scenario(data, "gu_hu_intelligent.toml")
     port = free_port()
     results: dict = {}
-    th = threading.Thread(target=drive_browser, args=(port, results, shots), daemon=True)
+    world = WorldWatch()
+    th = threading.Thread(target=drive_browser, args=(port, results, shots, world), daemon=True)
     th.start()
-    summary, info = run_zenoh_to_dir(sc, data, out_dir, dashboard_port=port, quiet=True, timeout_s=400)
+    try:
+        summary, info = run_zenoh_to_dir(sc, data, out_dir, dashboard_port=port, quiet=True, on_poll=world,
+                                         timeout_s=900)
+    finally:
+        world.close()
     th.join(timeout=60)
-    print("browser timeline (s, step, tick shown):", results.get("timeline"))
+    print("browser timeline (s, step, tick shown, run's tick):", results.get("timeline"))
     assert "error" not in results, results["error"] + f"\ntimeline: {results.get('timeline')}"
     assert not th.is_alive(), "the browser session did not finish during the run"
-    if os.environ.get("FLOCKTRACK_DOCS_SCREENSHOTS"):
+    if DOCS:
         for name in ("dashboard.png", "dashboard_inspect.png"):
             shutil.copy(shots / name, ROOT / "docs" / name)
     rec = read_recording(out_dir / "recording.mcap")
@@ -213,7 +248,8 @@ def test_page_shows_the_scene_and_the_uplot_panels(session):
 
 
 def test_fault_buttons_publish_controls_with_effect_in_the_recording(session):
-    rec, info, n = session["rec"], session["info"], session["sc"].sensors.n
+    rec, info, sc = session["rec"], session["info"], session["sc"]
+    n = sc.sensors.n
     ticks = {m.k: m for key, m, _ in rec.messages if key == "world/tick"}
     controls = [(key, m) for key, m, _ in rec.messages if key.startswith("control/")]
     events = [m for key, m, _ in rec.messages if key == "world/event"]
@@ -224,6 +260,14 @@ def test_fault_buttons_publish_controls_with_effect_in_the_recording(session):
     assert len(drops) == 1 and drops[0].args == {"a": LINK[0], "b": LINK[1]}, controls
     assert len(kills) == 1 and kills[0].args == {"agent": VICTIM}, controls
     assert drops[0].k >= session["results"]["click_tick"] - 2
+
+    # the page's Pause held the world's clock: no tick between the pause and the resume acknowledgements
+    t_ack = {m.verb: t for key, m, t in rec.messages if key == "world/event"}
+    assert {"pause", "resume", "link_drop"} <= set(t_ack), t_ack
+    held = [t for key, m, t in rec.messages if key == "world/tick" and t_ack["pause"] < t < t_ack["resume"]]
+    paused_s = (t_ack["resume"] - t_ack["pause"]) / 1e9
+    assert paused_s > 2.0
+    assert len(held) <= 1, (len(held), paused_s)   # at most the tick that was closing as the pause came
 
     # effect 1 (world): acknowledged on world/event; from the tick it took effect on, 0–1 is not a link
     acks = [e for e in events if e.verb == "link_drop"]

@@ -268,7 +268,8 @@ class WorldRole(Role):
             self._advance()
 
     def on_deadline(self) -> None:
-        if self._open:
+        """A guard against dead processes; a paused realtime world holds its clock (on_timer resumes)."""
+        if self._open and not (self.realtime and self.paused):
             self._advance()
 
     def _advance(self) -> None:
