@@ -166,7 +166,10 @@ class FaultEventCfg:
     targets: str = "all"      #: all | agents:1,2 | links:0-1,2-3 | random:k | most_connected | halves | groups:0,0,1,…
     p: float = 1.0            #: link_loss / duplicate / reorder probability
     direction: Literal["both", "in", "out"] = "both"
-    delay_ticks: int = 1
+    delay_ticks: int = 1      #: delay in ticks (lockstep-friendly: a payload held k ticks arrives late)
+    jitter_ticks: int = 0     #: + a uniform integer in [−jitter_ticks, jitter_ticks] per payload (≥ 0 overall)
+    delay_ms: float = 0.0     #: delay in wall-clock ms instead of ticks (> 0 switches to ms; realtime: what
+    jitter_ms: float = 0.0    #:   misses its round's deadline is lost); + uniform ±jitter_ms per payload
     mode: Literal["nan", "huge", "stale", "bias"] = "bias"
     bias: Vector | None = None
     magnitude: float = 50.0   #: outlier norm; "huge" Byzantine factor is 1e6
@@ -626,44 +629,58 @@ def _validate_faults(sc: Scenario) -> None:
     if not 0.0 <= fc.link_loss <= 1.0:
         raise ScenarioError(src, "faults.link_loss", f"a probability in [0, 1] is expected, got {fc.link_loss}")
     for i, e in enumerate(fc.events):
-        key = f"faults.events[{i}]"
-        if e.start < 0 or (e.heal is not None and e.heal <= e.start):
-            raise ScenarioError(src, f"{key}.heal", f"heal ({e.heal}) must come after start ({e.start})",
-                                "give heal > start, or leave heal out for a permanent fault")
-        if not 0.0 <= e.p <= 1.0:
-            raise ScenarioError(src, f"{key}.p", f"a probability in [0, 1] is expected, got {e.p}")
-        if e.delay_ticks < 0:
-            raise ScenarioError(src, f"{key}.delay_ticks", "must be ≥ 0")
-        t = e.targets
-        head, _, rest = t.partition(":")
-        try:
-            if head in ("all", "most_connected", "halves") and not rest:
-                ok = True
-            elif head == "agents":
-                ok = all(0 <= int(x) < n for x in rest.split(","))
-            elif head == "random":
-                ok = 1 <= int(rest) <= n
-            elif head == "links":
-                ok = all(0 <= int(a) < n and 0 <= int(b) < n and a != b
-                         for a, b in (x.split("-") for x in rest.split(",")))
-            elif head == "groups":
-                ok = len(rest.split(",")) == n and all(int(x) >= 0 for x in rest.split(","))
-            else:
-                ok = False
-        except ValueError:
+        validate_fault_event(e, n, src, f"faults.events[{i}]", n_meas=np.shape(sc.sensors.C)[0])
+
+
+def validate_fault_event(e: FaultEventCfg, n: int, src: str, key: str, n_meas: int | None = None) -> None:
+    """Checks of one fault event against a flock of ``n`` sensors (a scenario's ``[[faults.events]]`` or a
+    live ``control/inject``); raises :class:`ScenarioError` naming ``key``."""
+    if e.start < 0 or (e.heal is not None and e.heal <= e.start):
+        raise ScenarioError(src, f"{key}.heal", f"heal ({e.heal}) must come after start ({e.start})",
+                            "give heal > start, or leave heal out for a permanent fault")
+    if not 0.0 <= e.p <= 1.0:
+        raise ScenarioError(src, f"{key}.p", f"a probability in [0, 1] is expected, got {e.p}")
+    for name, hi in (("delay_ticks", 1000), ("jitter_ticks", 1000), ("delay_ms", 60_000.0), ("jitter_ms", 60_000.0)):
+        v = getattr(e, name)
+        if not (math.isfinite(v) and 0 <= v <= hi):
+            raise ScenarioError(src, f"{key}.{name}", f"must be in [0, {hi:g}], got {v}")
+    if e.delay_ms > 0 and e.jitter_ticks > 0:
+        raise ScenarioError(src, f"{key}.jitter_ticks", "a delay in ms takes its jitter in ms",
+                            "use jitter_ms with delay_ms (jitter_ticks goes with delay_ticks)")
+    t = e.targets
+    head, _, rest = t.partition(":")
+    try:
+        if head in ("all", "most_connected", "halves") and not rest:
+            ok = True
+        elif head == "agents":
+            ok = all(0 <= int(x) < n for x in rest.split(","))
+        elif head == "random":
+            ok = 1 <= int(rest) <= n
+        elif head == "links":
+            ok = all(0 <= int(a) < n and 0 <= int(b) < n and a != b
+                     for a, b in (x.split("-") for x in rest.split(",")))
+        elif head == "groups":
+            ok = len(rest.split(",")) == n and all(int(x) >= 0 for x in rest.split(","))
+        else:
             ok = False
-        if not ok:
-            raise ScenarioError(src, f"{key}.targets", f"cannot read target selector {t!r}",
-                                f"use all, agents:1,2, links:0-1,2-3, random:k (k ≤ {n}), most_connected, halves, "
-                                f"or groups:<one group id per sensor>")
-        if e.kind == "partition" and head not in ("halves", "groups"):
-            raise ScenarioError(src, f"{key}.targets", "a partition needs targets = \"halves\" or \"groups:…\"")
-        if e.kind == "bias" and e.bias is not None and len(e.bias) != np.shape(sc.sensors.C)[0]:
-            raise ScenarioError(src, f"{key}.bias", "one bias value per measurement component")
-        if e.kind == "byzantine" and e.mode == "bias" and e.bias is not None \
-                and len(e.bias) != np.shape(sc.sensors.C)[0]:
-            raise ScenarioError(src, f"{key}.bias", f"expected {np.shape(sc.sensors.C)[0]} numbers (one per "
-                                "measurement component)")
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ScenarioError(src, f"{key}.targets", f"cannot read target selector {t!r}",
+                            f"use all, agents:1,2, links:0-1,2-3, random:k (k ≤ {n}), most_connected, halves, "
+                            f"or groups:<one group id per sensor>")
+    if e.kind == "partition" and head not in ("halves", "groups"):
+        raise ScenarioError(src, f"{key}.targets", "a partition needs targets = \"halves\" or \"groups:…\"")
+    if n_meas is not None and e.bias is not None and len(e.bias) != n_meas:
+        raise ScenarioError(src, f"{key}.bias", f"expected {n_meas} numbers (one per measurement component)")
+
+
+def parse_fault_event(table: dict, n: int, src: str = "control/inject", key: str = "inject",
+                      n_meas: int | None = None) -> FaultEventCfg:
+    """One fault event from a plain table (keys of :class:`FaultEventCfg`), typed and validated."""
+    e = _build(FaultEventCfg, table, src, key)
+    validate_fault_event(e, n, src, key, n_meas)
+    return e
 
 
 def parse_uav_scenario(data: dict, source: str) -> Scenario:

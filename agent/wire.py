@@ -333,6 +333,25 @@ class Control(Message):
         return dict(verb=_str(d.get("verb"), "verb", 64), args=clean)
 
 
+def control_args(items: list[str] | str) -> dict[str, Any]:
+    """``name=value`` words (a list, or one space-separated string) → Control args; values are read as TOML
+    (``80`` → int, ``0.3`` → float, ``[1, 2]`` → list, ``true``), anything else stays a string
+    (``targets=agents:2``). Raises ValueError naming a word without ``=``."""
+    import tomllib
+
+    words = items.split() if isinstance(items, str) else list(items)
+    out: dict[str, Any] = {}
+    for w in words:
+        name, sep, raw = w.partition("=")
+        if not sep or not name:
+            raise ValueError(f"{w!r} must look like name=value")
+        try:
+            out[name] = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[name] = raw
+    return out
+
+
 @dataclass
 class End(Message):
     """World → all: the run is over after ``k`` ticks (``reason``: "done", "stopped")."""

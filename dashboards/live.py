@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 #: subscription keep the publication order — and the model relies on it to score a tick in time.
 SUBSCRIPTION = "**"
 CONTROL_VERBS = ("pause", "resume", "step", "speed", "kill", "restart", "link_drop", "link_heal", "link_loss",
-                 "partition", "heal", "outlier_burst")
+                 "partition", "heal", "outlier_burst", "inject", "heal_fault")
 
 
 # ============================================================================ recordings (replay)
@@ -413,6 +413,20 @@ class DashboardUI:
         self.controls_sent.append((verb, args))
         self.send_control(verb, args)
 
+    def inject_from_form(self) -> bool:
+        """The "Plan fault" form → control/inject (the world validates it and answers on world/event with
+        the fault's id, or "rejected" and the reason). Words that are not name=value are flagged in place."""
+        try:
+            args = wire.control_args(self.g_inj_params.value)
+        except ValueError as exc:
+            self.g_inj_params.value = f"{self.g_inj_params.value.split('  ←')[0]}  ← {exc}"
+            return False
+        args.update(kind=self.g_inj_kind.value, targets=self.g_inj_targets.value.strip())
+        if int(self.g_inj_ticks.value) > 0:
+            args["ticks"] = int(self.g_inj_ticks.value)
+        self._control("inject", **args)
+        return True
+
     def _build_gui(self) -> None:
         gui = self.server.gui
         gui.configure_theme(control_width="large", show_share_button=False, show_logo=False,
@@ -507,6 +521,22 @@ class DashboardUI:
                 self.g_burst_ticks = gui.add_number("Outlier ticks", 20, min=1, max=100_000, step=1)
                 self.g_burst_mag = gui.add_number("Outlier magnitude", 5.0, min=0.0, max=1e6, step=0.5)
                 b_burst = gui.add_button("Inject outlier burst")
+            with gui.add_folder("Plan fault (control/inject)", expand_by_default=False):
+                from agent.scenario import FAULT_KINDS
+
+                self.g_inj_kind = gui.add_dropdown("Kind", FAULT_KINDS, initial_value="delay")
+                self.g_inj_targets = gui.add_text("Targets", "agents:0")
+                self.g_inj_params = gui.add_text("Parameters", "delay_ms=80 jitter_ms=20 direction=in")
+                self.g_inj_ticks = gui.add_number("Ticks (0 = until healed)", 100, min=0, max=10**7, step=1)
+                b_inj = gui.add_button("Inject")
+                self.g_inj_id = gui.add_number("Live fault id", 1000, min=1000, max=10**6, step=1)
+                b_heal_one = gui.add_button("Heal this fault")
+
+                b_inj.on_click(lambda _e: self.inject_from_form())
+
+                @b_heal_one.on_click
+                def _(event) -> None:
+                    self._control("heal_fault", id=int(self.g_inj_id.value))
 
                 @kb.on_click
                 def _(event) -> None:

@@ -98,15 +98,13 @@ def _g(v) -> str:
 def cmd_fault(args) -> int:
     """Publish one control/fault command on a running flock (what the dashboard's buttons do)."""
     from agent.bus import ZenohBus
-    from agent.wire import Control, WireError, decode, encode
+    from agent.wire import Control, WireError, control_args, decode, encode
 
-    kv = {}
-    for item in args.args:
-        k, sep, v = item.partition("=")
-        if not sep:
-            print(f"error: argument {item!r} must look like name=value", file=sys.stderr)
-            return 2
-        kv[k] = _parse_value(v)
+    try:
+        kv = control_args(args.args)
+    except ValueError as exc:
+        print(f"error: argument {exc}", file=sys.stderr)
+        return 2
     msg = Control(verb=args.verb, args=kv)
     try:
         decode(f"control/{args.verb}", encode(msg))  # the same validation every receiver applies

@@ -401,6 +401,13 @@ def test_viser_ui_renders_and_buttons_queue_controls():
         groups = ui.partition_groups()
         assert sorted(groups) == [0] * 6 + [1] * 6
         assert sent == [("kill", {"agent": 4})]
+        ui.g_inj_kind.value, ui.g_inj_targets.value = "delay", "agents:2 "
+        ui.g_inj_params.value, ui.g_inj_ticks.value = "delay_ms=80 jitter_ms=20.5 direction=in", 50
+        assert ui.inject_from_form()
+        assert sent[-1] == ("inject", {"delay_ms": 80, "jitter_ms": 20.5, "direction": "in", "kind": "delay",
+                                       "targets": "agents:2", "ticks": 50})
+        ui.g_inj_params.value = "delay_ms 80"
+        assert not ui.inject_from_form() and len(sent) == 2 and "name=value" in ui.g_inj_params.value
     finally:
         ui.stop()
 

@@ -190,3 +190,152 @@ def test_one_byzantine_sensor_ruins_plain_consensus_not_the_resilient_one(tmp_pa
     base, _ = _inproc(tmp_path / "base", "gu_hu_normal.toml", [], **{"run.ticks": 300, "estimator.resilient_f": 1})
     assert plain > 20 * resilient, (plain, resilient)
     assert resilient < 3 * max(base["network_rmse"], 0.05), (resilient, base["network_rmse"])
+
+
+# ------------------------------------------------------------------ delays in ms, live injection
+
+def test_delay_in_ms_changes_nothing_in_lockstep_inproc(tmp_path):
+    """Lockstep waits for every payload: a wall-clock delay (with jitter) on every link only holds
+    payloads back, so the estimates are bit-identical to the run without it."""
+    from flocktrack.inproc import run_inproc
+
+    plan = [{"kind": "delay", "targets": "all", "delay_ms": 20.0, "jitter_ms": 15.0, "start": 5, "heal": 25}]
+    _, base = _scenario("gu_hu_normal.toml", [], **{"run.ticks": 40})
+    _, sc = _scenario("gu_hu_normal.toml", plan, **{"run.ticks": 40})
+    m0, _, _ = run_inproc(base)
+    m1, roles, _ = run_inproc(sc)
+    assert m1.summary() == m0.summary()
+    delayed = [r.counters["delayed_payloads"] for r in roles.sensors]
+    assert all(d > 0 for d in delayed)
+    assert sum(r.counters["dropped_links"] for r in roles.sensors) == 0   # every round got every payload
+
+
+def test_delay_in_ticks_with_jitter_spreads_the_lateness():
+    from flocktrack.inproc import run_inproc
+
+    def counters(jitter):
+        plan = [{"kind": "delay", "targets": "agents:2", "direction": "in", "delay_ticks": 1,
+                 "jitter_ticks": jitter, "start": 5, "heal": 35}]
+        _, sc = _scenario("gu_hu_normal.toml", plan, **{"run.ticks": 40})
+        return run_inproc(sc)[1].sensors[2].counters
+
+    c0, c1 = counters(0), counters(1)
+    # held 1 tick: always late, counted and dropped; with jitter ±1 a third arrive at once (0 ticks)
+    assert c0["delayed_payloads"] > 100 and c0["late_payloads"] >= c0["delayed_payloads"]
+    assert c1["late_payloads"] >= c1["delayed_payloads"]
+    assert 0.5 < c1["delayed_payloads"] / c0["delayed_payloads"] < 0.85
+    assert 0 < c1["dropped_links"] < c0["dropped_links"]    # rounds that missed a neighbour's payload
+
+
+@pytest.mark.parametrize("bad, key", [({"delay_ms": -5.0}, "delay_ms"), ({"jitter_ms": float("inf")}, "jitter_ms"),
+                                      ({"delay_ms": 10.0, "jitter_ticks": 2}, "jitter_ticks"),
+                                      ({"delay_ticks": 5000}, "delay_ticks")])
+def test_bad_delays_are_named_in_the_error(bad, key):
+    ev = {"kind": "delay", "targets": "all", "start": 1, **bad}
+    with pytest.raises(ScenarioError) as ei:
+        _scenario("gu_hu_normal.toml", [ev])
+    assert f"faults.events[0].{key}" in str(ei.value)
+
+
+def test_live_injection_through_the_world():
+    from agent.bus import LocalBus
+    from agent.wire import Control
+    from topology.faults import LIVE_ID0
+    from topology.world import build_world
+
+    _, sc = _scenario("gu_hu_normal.toml", [])
+    w = build_world(sc)
+    bus = LocalBus()
+    w.attach(bus)
+    events = []
+    bus.subscribe("world/event", lambda key, m: events.append(m))
+    w.start()                                         # tick 0 is open: controls take effect on tick 1
+    for bad in ({"kind": "delay", "targets": "agents:99"}, {"kind": "no_such_kind"}, {"kind": "delay", "delay_ms": -1.0},
+                {"kind": "delay", "colour": "red"}, {"kind": "delay", "ticks": 0}, {"kind": "partition", "targets": "all"}):
+        bus.publish("control/inject", Control(verb="inject", args=bad))
+        bus.drain()
+    assert w.stats["rejected_injections"] == 6
+    assert [e.verb for e in events] == ["rejected"] * 6      # each said why, on the timeline
+    reasons = [e.args["reason"] for e in events]
+    for r, key in zip(reasons, ("inject.targets", "inject.kind", "inject.delay_ms", "inject.colour", "inject.ticks",
+                                "inject.targets")):
+        assert key in r, (key, r)
+    events.clear()
+    bus.publish("control/inject", Control(verb="inject", args={"kind": "link_loss", "targets": "agents:0", "p": 1.0,
+                                                                "direction": "in", "ticks": 3}))
+    bus.publish("control/inject", Control(verb="inject", args={"kind": "blind", "targets": "agents:1"}))
+    bus.drain()
+    assert [(e.verb, e.k, e.args["id"]) for e in events] == [("inject", 1, LIVE_ID0), ("inject", 1, LIVE_ID0 + 1)]
+    starts = {}
+    for k in range(1, 8):
+        if k == 5:
+            bus.publish("control/heal_fault", Control(verb="heal_fault", args={"id": LIVE_ID0 + 1}))
+            bus.drain()
+        w.on_deadline()                               # close tick k−1, open tick k
+        bus.drain()
+        t = w.last_tick
+        assert (t.links[0] == []) == (1 <= k < 4), k  # the link loss lasted its 3 ticks
+        assert (t.b[1] == 0) == (1 <= k < 5), k       # blind until healed (the tick after the control)
+    for e in events:
+        if e.verb == "fault":
+            starts[(e.args["id"], e.args["phase"])] = e.k
+    assert starts == {(LIVE_ID0, "start"): 1, (LIVE_ID0 + 1, "start"): 1, (LIVE_ID0, "heal"): 4,
+                      (LIVE_ID0 + 1, "heal"): 5}
+    assert not w.apply_control("heal_fault", {"id": LIVE_ID0 + 1})   # already healed
+
+
+def test_delay_in_ms_in_realtime_and_live_injection_over_zenoh(tmp_path):
+    """Realtime: a wall-clock delay longer than a tick makes every delayed payload miss its round (lost,
+    counted late); a live control/inject starts a fault plan event mid-run, heal_fault ends it."""
+    import subprocess
+    import sys
+    import time
+
+    from agent.bus import ZenohBus
+    from agent.wire import Control
+    from topology.faults import LIVE_ID0
+
+    plan = [{"kind": "delay", "targets": "agents:2", "direction": "in", "delay_ms": 400.0, "jitter_ms": 100.0,
+             "start": 20, "heal": 50}]
+    data, sc = _scenario("gu_hu_normal.toml", plan, **{"run.ticks": 130, "run.mode": "realtime", "run.speed": 0.25})
+    st = {"bus": None, "k": -1, "sent": set()}
+
+    def hook(launcher):
+        if st["bus"] is None:
+            st["bus"] = ZenohBus(launcher.run, connect=launcher.endpoint)
+            st["bus"].subscribe("world/tick", lambda key, m: st.__setitem__("k", max(st["k"], m.k)))
+        st["bus"].poll(0)
+        if st["k"] >= 60 and "inject" not in st["sent"]:   # through the CLI, as a user would
+            st["cli"] = subprocess.Popen([sys.executable, "-m", "flocktrack", "fault", "inject", "kind=delay",
+                                          "targets=agents:5", "direction=in", "delay_ms=1.0", "jitter_ms=1.0",
+                                          "--run", launcher.run, "--connect", launcher.endpoint],
+                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            st["sent"].add("inject")
+        if st["k"] >= 90 and "heal" not in st["sent"]:
+            st["bus"].publish("control/heal_fault", Control(verb="heal_fault", args={"id": LIVE_ID0}))
+            st["sent"].add("heal")
+        time.sleep(0.005)
+
+    try:
+        summary, info = run_zenoh_to_dir(sc, data, tmp_path, quiet=True, on_poll=hook, timeout_s=600)
+    finally:
+        if st["bus"] is not None:
+            st["bus"].close()
+    assert info["rc"] == 0
+    out, _ = st["cli"].communicate(timeout=60)
+    assert st["cli"].returncode == 0, out
+    rec = read_recording(tmp_path / "recording.mcap")
+    fault = {(m.args["id"], m.args["phase"]): m.k for key, m, _ in rec.messages
+             if key == "world/event" and m.verb == "fault"}
+    assert fault[(0, "start")] == 20 and fault[(0, "heal")] == 50
+    inj = [m for key, m, _ in rec.messages if key == "world/event" and m.verb == "inject"]
+    assert len(inj) == 1 and inj[0].args["id"] == LIVE_ID0 and inj[0].args["delay_ms"] == 1.0
+    assert fault[(LIVE_ID0, "start")] == inj[0].k >= 60
+    assert fault[(LIVE_ID0, "heal")] >= 90
+    stats = {p.stem: json.loads(p.read_text()).get("role", {}) for p in (tmp_path / "stats").glob("agent_*.json")}
+    s2, s5 = stats["agent_2"], stats["agent_5"]
+    # 400 ± 100 ms ≫ the 23 ms round slot: every payload delayed to agent 2 came too late for its round
+    assert s2["delayed_payloads"] > 50
+    assert s2.get("late_payloads", 0) >= 0.95 * s2["delayed_payloads"]
+    assert s5["delayed_payloads"] > 50                  # the live one was applied, at agent 5 only
+    assert all(s.get("delayed_payloads", 0) == 0 for name, s in stats.items() if name not in ("agent_2", "agent_5"))

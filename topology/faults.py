@@ -11,7 +11,9 @@ Who executes what:
 
 =================  ===========================================================================
 world              link_loss (per direction, probability p per tick), partition, blind (bᵢ = 0)
-sensor (receiver)  delay (held ``delay_ticks`` ticks: arrives late → dropped and counted),
+sensor (receiver)  delay: held ``delay_ticks`` (± ``jitter_ticks``) ticks — arrives late → dropped and
+                   counted — or ``delay_ms`` (± ``jitter_ms``) of wall-clock time: in realtime what
+                   misses its round's deadline is lost, in lockstep the round waits for it,
                    duplicate and reorder of exchange payloads (the protocol must be immune)
 sensor (sender)    byzantine (nan | huge | stale | bias payloads), outliers (impulsive noise of
                    paper 004), noise (measurement noise × noise_scale)
@@ -22,11 +24,16 @@ launcher           crash (SIGKILL; restart at heal), pause (SIGSTOP / SIGCONT), 
 Target selectors: ``all``, ``agents:1,2``, ``links:0-1,2-3``, ``random:k`` (k agents drawn from the plan's
 seeded generator at start), ``most_connected`` (highest degree in the graph at start), ``halves``
 (a seeded random split into two groups), ``groups:0,0,1,…`` (a group id per sensor).
+
+Live faults: ``control/inject`` (args = the keys of one event, ``ticks`` = its duration, none = until
+healed) adds an event to the plan from the next tick, with id ``LIVE_ID0 + j``; ``control/heal`` heals
+every live fault (and the world's link faults) at the next tick, ``control/heal_fault {id}`` heals one.
+Both then go through the same start/heal transitions on ``world/event`` as the scenario's own events.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -35,6 +42,7 @@ from agent.scenario import FaultEventCfg, FaultsCfg
 from agent.seeding import rng_for
 
 WORLD_KINDS = {"link_loss", "partition", "blind"}
+LIVE_ID0 = 1000   #: ids of live-injected faults start here (the scenario's events are 0, 1, …)
 
 
 @dataclass
@@ -50,6 +58,7 @@ class ActiveFault:
         a: dict[str, Any] = {"id": self.id, "kind": c.kind, "phase": phase, "agents": [float(x) for x in self.agents],
                              "links": [float(v) for e in self.links for v in e], "p": c.p,
                              "direction": c.direction, "delay_ticks": c.delay_ticks, "mode": c.mode,
+                             "jitter_ticks": c.jitter_ticks, "delay_ms": c.delay_ms, "jitter_ms": c.jitter_ms,
                              "magnitude": c.magnitude, "noise_scale": c.noise_scale, "accel": c.accel}
         if self.groups is not None:
             a["groups"] = [float(g) for g in self.groups]
@@ -66,18 +75,37 @@ class FaultPlan:
         self.rng = rng_for(cfg.seed if cfg.seed is not None else seed, "faults", 0, "targets")
         self.loss_rng = rng_for(cfg.seed if cfg.seed is not None else seed, "faults", 0, "link_loss")
         self.active: dict[int, ActiveFault] = {}
+        self.events: dict[int, FaultEventCfg] = dict(enumerate(cfg.events))
 
     @property
     def empty(self) -> bool:
-        return not self.cfg.events and self.cfg.link_loss == 0
+        return not self.events and self.cfg.link_loss == 0
+
+    def inject(self, e: FaultEventCfg, k: int, ticks: int | None = None) -> int:
+        """A live fault: ``e`` starts at tick ``k`` and heals ``ticks`` later (never, if None). Returns its id."""
+        fid = LIVE_ID0 + sum(1 for i in self.events if i >= LIVE_ID0)
+        self.events[fid] = replace(e, start=int(k), heal=None if ticks is None else int(k) + int(ticks))
+        return fid
+
+    def heal_at(self, k: int, fid: int | None = None) -> list[int]:
+        """Heal the live fault ``fid`` (every live one if None) at tick ``k``; returns the ids concerned."""
+        ids = [i for i in self.events if i >= LIVE_ID0 and (fid is None or i == fid)
+               and (self.events[i].heal is None or self.events[i].heal > k)]
+        for i in ids:
+            e = self.events[i]
+            if e.start >= k:            # not started yet: it never will
+                del self.events[i]
+            else:
+                self.events[i] = replace(e, heal=int(k))
+        return ids
 
     def transitions(self, k: int, adj: np.ndarray) -> list[tuple[str, ActiveFault]]:
         """Faults that heal and start at tick k (heals first), resolving targets on start."""
         out: list[tuple[str, ActiveFault]] = []
-        for i, e in enumerate(self.cfg.events):
+        for i, e in self.events.items():
             if e.heal is not None and e.heal == k and i in self.active:
                 out.append(("heal", self.active.pop(i)))
-        for i, e in enumerate(self.cfg.events):
+        for i, e in self.events.items():
             if e.start == k:
                 f = self.resolve(i, e, adj)
                 self.active[i] = f

@@ -20,7 +20,7 @@ from agent.roles.common import Role
 from agent.seeding import rng_for
 from agent.wire import Control, End, Message, State, Tick
 
-from agent.scenario import Scenario
+from agent.scenario import FaultsCfg, Scenario, ScenarioError, parse_fault_event
 
 from .faults import FaultPlan
 from .graph import GraphSpec, PeriodicSchedule, edge_weights, max_degree, neighbour_lists, range_adjacency
@@ -47,6 +47,11 @@ def build_world(sc: Scenario, **kw) -> "WorldRole":
                      faults=FaultPlan(sc.faults, sc.sensors.n, sc.run.seed), **kw)
 
 
+#: the control verbs the world executes (kill/restart: the launcher; outlier_burst: the sensors)
+WORLD_VERBS = frozenset({"pause", "resume", "step", "speed", "link_drop", "link_heal", "link_loss", "partition",
+                         "heal", "inject", "heal_fault"})
+
+
 class WorldRole(Role):
     name = "world"
 
@@ -69,7 +74,9 @@ class WorldRole(Role):
         self.link_loss = 0.0
         self.groups: list[int] | None = None
         self._fault_rng = rng_for(seed, "world", 0, "faults")
-        self.plan = faults
+        self.plan = faults if faults is not None else FaultPlan(FaultsCfg(), n, seed)
+        self.live_faults: list[int] = []          # ids of the faults injected through control/inject
+        self.last_rejection = ""                  # why the last control was refused (world/event "rejected")
         self.n, self.T = int(n), float(T)
         self.schedule = schedule
         self.radius = float(radius)
@@ -92,10 +99,18 @@ class WorldRole(Role):
     # ------------------------------------------------------------------ control plane
     def _on_control(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Control)
-        if self.apply_control(msg.verb, msg.args):
+        self.last_rejection = "bad arguments"
+        if not self.apply_control(msg.verb, msg.args):
+            if msg.verb in WORLD_VERBS:   # say why on the timeline (the dashboard shows it); others' verbs: silence
+                self.stats["rejected_controls"] = self.stats.get("rejected_controls", 0) + 1
+                self.publish("world/event", Control(k=self._next_k(), verb="rejected",
+                                                    args={"verb": msg.verb, "reason": self.last_rejection[:300]}))
+        else:
             self.stats["controls"] += 1
-            k_eff = self.k + 1 if self._open else self.k
-            self.publish("world/event", Control(k=k_eff, verb=msg.verb, args=dict(msg.args)))
+            args = dict(msg.args)
+            if msg.verb == "inject":
+                args["id"] = self.live_faults[-1]     # to heal it by: control/heal_fault {id}
+            self.publish("world/event", Control(k=self._next_k(), verb=msg.verb, args=args))
 
     def apply_control(self, verb: str, args: dict) -> bool:
         """Apply one control verb; returns False for verbs that are not the world's."""
@@ -144,8 +159,42 @@ class WorldRole(Role):
         elif verb == "heal":
             self.groups, self.link_loss = None, 0.0
             self.dropped_links.clear()
+            self.plan.heal_at(self._next_k())
+        elif verb == "inject":
+            return self._inject(args)
+        elif verb == "heal_fault":
+            fid = args.get("id")
+            if isinstance(fid, bool) or not isinstance(fid, (int, float)) or not self.plan.heal_at(self._next_k(), int(fid)):
+                return False
         else:
             return False
+        return True
+
+    def _next_k(self) -> int:
+        """The tick a control received now takes effect on (the open one has been published already)."""
+        return self.k + 1 if self._open else self.k
+
+    def _inject(self, args: dict) -> bool:
+        """control/inject: one fault-plan event, live (args: the keys of a [[faults.events]] entry, and
+        ``ticks`` for its duration). A malformed one is rejected and counted, never raised."""
+        table = {a: v for a, v in args.items() if a not in ("ticks", "id")}
+        for a in ("start", "heal"):
+            table.pop(a, None)
+        ticks = args.get("ticks")
+        if ticks is not None and (isinstance(ticks, bool) or not isinstance(ticks, (int, float)) or not 1 <= ticks <= 10**7):
+            self.stats["rejected_injections"] = self.stats.get("rejected_injections", 0) + 1
+            self.last_rejection = f"inject.ticks: the fault's duration must be a number of ticks ≥ 1, got {ticks!r}"
+            return False
+        for a in ("delay_ticks", "jitter_ticks"):   # integers on the wire may come back as floats
+            if isinstance(table.get(a), float) and table[a].is_integer():
+                table[a] = int(table[a])
+        try:
+            e = parse_fault_event(table, self.n)
+        except ScenarioError as exc:
+            self.stats["rejected_injections"] = self.stats.get("rejected_injections", 0) + 1
+            self.last_rejection = str(exc)
+            return False
+        self.live_faults.append(self.plan.inject(e, self._next_k(), None if ticks is None else int(ticks)))
         return True
 
     def _release(self) -> None:

@@ -14,6 +14,8 @@ messages of a finished round or tick are counted as late and dropped.
 
 from __future__ import annotations
 
+import heapq
+import time
 from collections import Counter
 
 import numpy as np
@@ -36,6 +38,9 @@ class SensorRole(Role):
         self.seed = int(seed)
         self._faults: dict[int, dict] = {}     # active fault-plan events that concern this node
         self._held: list[tuple[int, str, Message]] = []   # delayed payloads (release tick, key, msg)
+        self._held_ms: list[tuple[float, int, str, Message]] = []   # heap: (release time, seq, key, msg)
+        self._held_seq = 0
+        self._clocked = False                  # a process driver calls on_timer; the in-process engine does not
         self._reorder_slot: tuple[str, Message] | None = None
         self._stale: dict[int, dict] = {}      # Byzantine "stale": the payloads replayed, per round
         self._netem_rng = rng_for(seed, "agent", i, "netem")
@@ -101,10 +106,11 @@ class SensorRole(Role):
             if name in a and (isinstance(a[name], bool) or not isinstance(a[name], (int, float))):
                 self.counters["rejected_events"] += 1
                 return
-        if "delay_ticks" in a and (not isinstance(a["delay_ticks"], (int, float)) or isinstance(a["delay_ticks"], bool)
-                                   or not 0 <= a["delay_ticks"] <= 1000):
-            self.counters["rejected_events"] += 1
-            return
+        for name, hi in (("delay_ticks", 1000), ("jitter_ticks", 1000), ("delay_ms", 60_000), ("jitter_ms", 60_000)):
+            if name in a and (not isinstance(a[name], (int, float)) or isinstance(a[name], bool)
+                              or not 0 <= a[name] <= hi):
+                self.counters["rejected_events"] += 1
+                return
         if a["kind"] in ("byzantine", "outliers", "noise") and self.i not in agents:
             return
         self._faults[fid] = dict(a, agent_set=agents, pairs=pairs)
@@ -255,9 +261,7 @@ class SensorRole(Role):
         if self._faults:
             for f in self._link_faults(msg.src):
                 kind = f["kind"]
-                if kind == "delay":
-                    self._held.append((msg.k + int(f.get("delay_ticks", 1)), key, msg))
-                    self.counters["delayed_payloads"] += 1
+                if kind == "delay" and self._delay(f, key, msg):
                     return
                 if kind == "duplicate" and self._netem_rng.random() < float(f.get("p", 1.0)):
                     self.counters["duplicated_payloads"] += 1
@@ -272,6 +276,39 @@ class SensorRole(Role):
         if self._reorder_slot is not None:  # the held-back one goes after its successor
             prev, self._reorder_slot = self._reorder_slot, None
             self._accept_xchg(*prev)
+
+    def _delay(self, f: dict, key: str, msg: Xchg) -> bool:
+        """Hold a payload back (fault plan ``delay``): ``delay_ms`` ± ``jitter_ms`` of wall-clock time, or
+        ``delay_ticks`` ± ``jitter_ticks`` ticks (uniform jitter, never below 0). False: not delayed."""
+        rng = self._netem_rng
+        d_ms, j_ms = float(f.get("delay_ms", 0.0)), float(f.get("jitter_ms", 0.0))
+        if d_ms > 0 or j_ms > 0:
+            d = max(0.0, d_ms + (rng.uniform(-j_ms, j_ms) if j_ms > 0 else 0.0))
+            self._held_seq += 1
+            heapq.heappush(self._held_ms, (time.monotonic() + d / 1000.0, self._held_seq, key, msg))
+        else:
+            jt = int(f.get("jitter_ticks", 0))
+            dt = int(f.get("delay_ticks", 1)) + (int(rng.integers(-jt, jt + 1)) if jt > 0 else 0)
+            if dt <= 0:
+                return False
+            self._held.append((msg.k + dt, key, msg))
+        self.counters["delayed_payloads"] += 1
+        return True
+
+    def _release_held_ms(self, now: float | None) -> bool:
+        """Let in the payloads held by a delay in ms whose time has come (all of them when ``now`` is None:
+        the in-process engine has no wall clock, it delivers them once nothing else is arriving)."""
+        n = 0
+        while self._held_ms and (now is None or self._held_ms[0][0] <= now):
+            _, _, key, msg = heapq.heappop(self._held_ms)
+            self._accept_xchg(key, msg)   # late for its round: counted and dropped by the handler
+            n += 1
+        return n > 0
+
+    def on_timer(self, now: float) -> None:
+        self._clocked = True
+        if self._held_ms:
+            self._release_held_ms(now)
 
     def _accept_xchg(self, key: str, msg: Xchg) -> None:
         if msg.k < self.k or (msg.k == self.k and 0 <= self.r and msg.r < self.r):
@@ -371,9 +408,10 @@ class SensorRole(Role):
             self._close_round()
 
     def on_idle(self) -> bool:
-        """Nothing came after a held-back (reordered) payload: let it in now."""
+        """Nothing came after a held-back (reordered) payload: let it in now. Without a wall clock (the
+        in-process engine), payloads delayed in ms come in now too."""
         if self._reorder_slot is None:
-            return False
+            return bool(self._held_ms) and not self._clocked and self._release_held_ms(None)
         prev, self._reorder_slot = self._reorder_slot, None
         self._accept_xchg(*prev)
         return True
