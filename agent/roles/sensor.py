@@ -61,6 +61,7 @@ class SensorRole(Role):
         self._ticks: dict[int, Tick] = {}
         self._truth: dict[int, Truth] = {}
         self._xbuf: dict[tuple[int, int], dict[int, dict]] = {}
+        self._withheld: dict[tuple[int, int], set[int]] = {}   # (k, r) → senders whose payload a tick-delay holds
         self._prior: np.ndarray | None = None
         self._nbrs: list[int] = []
         self._dead: set[int] = set()
@@ -206,8 +207,9 @@ class SensorRole(Role):
         for d in (self._ticks, self._truth):
             for kk in [kk for kk in d if kk < self.k]:
                 del d[kk]
-        for kr in [kr for kr in self._xbuf if kr[0] < self.k]:
-            del self._xbuf[kr]
+        for buf in (self._xbuf, self._withheld):
+            for kr in [kr for kr in buf if kr[0] < self.k]:
+                del buf[kr]
 
     def _on_truth(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Truth)
@@ -292,6 +294,10 @@ class SensorRole(Role):
             if dt <= 0:
                 return False
             self._held.append((msg.k + dt, key, msg))
+            # it will certainly miss its round: that round need not wait for it (nor for a deadline)
+            self._withheld.setdefault((msg.k, msg.r), set()).add(msg.src)
+            if msg.k == self.k and msg.r == self.r:
+                self._check_round()
         self.counters["delayed_payloads"] += 1
         return True
 
@@ -404,7 +410,8 @@ class SensorRole(Role):
 
     def _check_round(self) -> None:
         got = self._xbuf.get((self.k, self.r), {})
-        if all(j in got for j in self._nbrs):
+        held = self._withheld.get((self.k, self.r), ())
+        if all(j in got or j in held for j in self._nbrs):
             self._close_round()
 
     def on_idle(self) -> bool:
@@ -418,6 +425,7 @@ class SensorRole(Role):
 
     def _close_round(self) -> None:
         got = self._xbuf.pop((self.k, self.r), {})
+        self._withheld.pop((self.k, self.r), None)
         nbrs = self._nbrs
         inbox = {j: got[j] for j in nbrs if j in got}
         self.counters["dropped_links"] += len(nbrs) - len(inbox)
@@ -452,6 +460,7 @@ class SensorRole(Role):
         for d in (self._ticks, self._truth):
             for kk in [kk for kk in d if kk < self.k]:
                 del d[kk]
-        for kr in [kr for kr in self._xbuf if kr[0] < self.k]:
-            del self._xbuf[kr]
+        for buf in (self._xbuf, self._withheld):
+            for kr in [kr for kr in buf if kr[0] < self.k]:
+                del buf[kr]
         self._try_begin()
