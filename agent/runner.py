@@ -114,3 +114,24 @@ def write_stats(name: str, bus, role: Role | None = None) -> None:
     p = Path(d) / (name.replace("/", "_") + ".json")
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(out, indent=1, sort_keys=True))
+
+
+def profiled(name: str, fn, *args):
+    """``fn(*args)``, under cProfile when ``$FLOCKTRACK_PROFILE_DIR`` is set (bench/: where a process's
+    time goes); the stats land in ``<dir>/<name>.prof`` (``python -m pstats`` or snakeviz reads them)."""
+    import os
+
+    d = os.environ.get("FLOCKTRACK_PROFILE_DIR")
+    if not d:
+        return fn(*args)
+    import cProfile
+    from pathlib import Path
+
+    import time
+
+    prof = cProfile.Profile(time.thread_time)  # CPU of this thread: waiting for others is not counted
+    try:
+        return prof.runcall(fn, *args)
+    finally:
+        Path(d).mkdir(parents=True, exist_ok=True)
+        prof.dump_stats(str(Path(d) / (name.replace("/", "_") + ".prof")))

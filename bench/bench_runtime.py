@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -47,16 +49,59 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
+def cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of a process (all its threads) so far."""
+    try:
+        f = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class CpuTrace:
+    """Samples of (wall time, CPU seconds) per process, to read the CPU spent between two instants
+    (the first and last tick: steady state, without interpreter start-up and imports)."""
+
+    def __init__(self) -> None:
+        self.samples: dict[str, list[tuple[float, float]]] = {}
+
+    def sample(self, name: str, pid: int) -> None:
+        c = cpu_s(pid)
+        if c is not None:
+            self.samples.setdefault(name, []).append((time.time(), c))
+
+    def between(self, t0: float, t1: float) -> dict[str, float]:
+        out = {}
+        for name, s in self.samples.items():
+            ts, cs = np.array([x[0] for x in s]), np.array([x[1] for x in s])
+            if len(ts) > 1 and ts[0] <= t0 and ts[-1] >= t1 * 0.999999:
+                out[name] = float(np.interp(t1, ts, cs) - np.interp(t0, ts, cs))
+        return out
+
+
+def per_tick_ms(cpu: dict[str, float], ticks: int) -> dict:
+    """CPU milliseconds per tick, by role (agent/3 → agent) and in total."""
+    by: dict[str, float] = {}
+    for name, c in cpu.items():
+        role = name.split("/")[0]
+        by[role] = by.get(role, 0.0) + c
+    return {"total": 1e3 * sum(by.values()) / ticks, **{r: 1e3 * c / ticks for r, c in sorted(by.items())}}
+
+
 def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
     data, sc = scenario(n, ticks, rounds)
     peak: dict[int, float] = {}
+    trace = CpuTrace()
+    me = os.getpid()
 
     def hook(launcher):
+        trace.sample("router/0", me)  # the embedded router lives in this (the launcher's) process
         for c in launcher.children.values():
             if c.proc and c.proc.poll() is None:
                 m = rss_mb(c.proc.pid)
                 if m:
                     peak[c.proc.pid] = max(peak.get(c.proc.pid, 0.0), m)
+                trace.sample(c.name, c.proc.pid)
 
     with tempfile.TemporaryDirectory() as d:
         _summary, info = run_zenoh_to_dir(sc, data, Path(d), quiet=True, on_poll=hook, timeout_s=1800)
@@ -73,7 +118,9 @@ def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
             lat.append((t - prev) / 1e6)
     ks = sorted(t_tick)
     steady = (t_tick[ks[-1]] - t_tick[ks[0]]) / 1e9
+    cpu = trace.between(t_tick[ks[0]] / 1e9, t_tick[ks[-1]] / 1e9)
     return {"ticks_per_s": (len(ks) - 1) / steady, "wall_s_including_startup": info["wall_s"],
+            "cpu_ms_per_tick": per_tick_ms(cpu, len(ks) - 1),
             "round_latency_ms": {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99))},
             "rss_mb": {"median": float(np.median(list(peak.values()))), "max": float(max(peak.values())),
                        "processes": len(peak)}}
@@ -106,18 +153,34 @@ def barrier_run(n: int, ticks: int, rounds: int) -> dict:
               "--xbytes", str(xbytes), "--sbytes", str(sbytes), "--tbytes", str(tbytes)]
     script = str(ROOT / "bench" / "zenoh_barrier.py")
     workers = [subprocess.Popen([sys.executable, script, "worker", "--id", str(i), *common]) for i in range(n)]
+    trace, done = CpuTrace(), threading.Event()
+
+    def sampler() -> None:
+        while not done.wait(0.05):
+            trace.sample("router/0", os.getpid())
+            for i, w in enumerate(workers):
+                trace.sample(f"worker/{i}", w.pid)
+            if coord:
+                trace.sample("coordinator/0", coord[0].pid)
+
+    coord: list[subprocess.Popen] = []
+    threading.Thread(target=sampler, daemon=True).start()
     try:
-        out = subprocess.run([sys.executable, script, "coordinator", *common], capture_output=True, text=True,
-                             timeout=1800)
-        res = json.loads(out.stdout.strip().splitlines()[-1])
+        coord.append(subprocess.Popen([sys.executable, script, "coordinator", *common], stdout=subprocess.PIPE,
+                                      text=True))
+        stdout, _ = coord[0].communicate(timeout=1800)
+        res = json.loads(stdout.strip().splitlines()[-1])
     finally:
+        done.set()
         for w in workers:
             try:
                 w.wait(30)
             except subprocess.TimeoutExpired:
                 w.kill()
         router.close()
-    return {"ticks_per_s": res["ticks_per_s"], "message_bytes": {"xchg": xbytes, "state": sbytes, "tick": tbytes},
+    cpu = trace.between(res["t0_wall"], res["t1_wall"])
+    return {"ticks_per_s": res["ticks_per_s"], "cpu_ms_per_tick": per_tick_ms(cpu, res["ticks"]),
+            "message_bytes": {"xchg": xbytes, "state": sbytes, "tick": tbytes},
             "mean_degree": float(np.mean([len(x) for x in nb]))}
 
 
@@ -128,17 +191,23 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "runtime.json"))
     a = ap.parse_args()
-    results = {"ticks": a.ticks, "rounds": a.rounds, "machine": {"cpus": __import__("os").cpu_count()},
+    results = {"ticks": a.ticks, "rounds": a.rounds, "machine": {"cpus": os.cpu_count(),
+                                                                  "loadavg_at_start": list(os.getloadavg())},
                "date": time.strftime("%Y-%m-%d"), "sizes": {}}
     for n in a.sizes:
         r = {"barrier": barrier_run(n, a.ticks, a.rounds), "zenoh": zenoh_run(n, a.ticks, a.rounds),
              "localbus": inproc_run(n, a.ticks, a.rounds)}
         r["zenoh_vs_barrier"] = r["zenoh"]["ticks_per_s"] / r["barrier"]["ticks_per_s"]
+        # on a CPU-bound machine ticks/s ∝ 1 / CPU per tick: the ratio the CPU budget alone allows
+        r["barrier_cpu_over_zenoh_cpu"] = (r["barrier"]["cpu_ms_per_tick"]["total"]
+                                           / max(r["zenoh"]["cpu_ms_per_tick"]["total"], 1e-9))
         results["sizes"][str(n)] = r
         print(f"N={n}: zenoh {r['zenoh']['ticks_per_s']:.2f} ticks/s, barrier {r['barrier']['ticks_per_s']:.2f}, "
               f"ratio {r['zenoh_vs_barrier']:.2f}, LocalBus {r['localbus']['ticks_per_s']:.2f}, "
               f"round latency median {r['zenoh']['round_latency_ms']['median']:.1f} ms, "
-              f"RSS median {r['zenoh']['rss_mb']['median']:.0f} MB", flush=True)
+              f"RSS median {r['zenoh']['rss_mb']['median']:.0f} MB; CPU/tick zenoh "
+              f"{r['zenoh']['cpu_ms_per_tick']['total']:.1f} ms vs barrier {r['barrier']['cpu_ms_per_tick']['total']:.1f}",
+              flush=True)
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps(results, indent=2))
 

@@ -73,13 +73,14 @@ def coordinator(a) -> None:
         time.sleep(0.05)
     time.sleep(0.2)
     tick = bytes(a.tbytes)
-    t0 = time.perf_counter()
+    t0, w0 = time.perf_counter(), time.time()
     for _k in range(a.ticks):
         pub.put(tick)
         for _ in range(a.n):
             q.get()
     dt = time.perf_counter() - t0
-    print(json.dumps({"ticks": a.ticks, "seconds": dt, "ticks_per_s": a.ticks / dt}))
+    print(json.dumps({"ticks": a.ticks, "seconds": dt, "ticks_per_s": a.ticks / dt, "t0_wall": w0,
+                      "t1_wall": time.time()}))
     s.close()
 
 

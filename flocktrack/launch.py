@@ -173,7 +173,18 @@ class Launcher:
             return open_router(self.port)
         return open_router(self.port, config_file=self.keys.router(), proto="tls")
 
+    def _record_exit(self, c: Child) -> int | None:
+        """The exit code of ``c``'s process if it has exited and was not yet recorded (then records it)."""
+        rc = c.proc.poll() if c.proc is not None else None
+        if rc is None or c.seen_exit == c.proc.pid:
+            return None
+        c.seen_exit = c.proc.pid
+        c.exits.append(rc)
+        self._event("exit", c.name, rc=rc)
+        return rc
+
     def _spawn(self, c: Child, rejoin: bool = False) -> None:
+        self._record_exit(c)  # a restart right after a kill: the old exit is on the record first
         argv = list(c.argv) + ([c.rejoin_flag] if rejoin and c.rejoin_flag else [])
         env = dict(os.environ, PYTHONUNBUFFERED="1", RUST_LOG=os.environ.get("RUST_LOG", "error"))
         env["FLOCKTRACK_STATS_DIR"] = str(self.run_dir / "stats")
@@ -282,11 +293,8 @@ class Launcher:
         for c in self.children.values():
             if c.proc is None:
                 continue
-            rc = c.proc.poll()
-            if rc is not None and c.seen_exit != c.proc.pid:
-                c.seen_exit = c.proc.pid
-                c.exits.append(rc)
-                self._event("exit", c.name, rc=rc)
+            rc = self._record_exit(c)
+            if rc is not None:
                 if rc != 0 and c.policy.mode == "on-failure" and c.restarts < c.policy.max_restarts \
                         and not self._stopping.is_set() and not c.hold:
                     c.restarts += 1

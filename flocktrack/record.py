@@ -64,7 +64,7 @@ class McapRecorder:
             ch = self._channels[key] = self._w.register_channel(
                 topic=key, message_encoding="json", schema_id=self._schemas[msg.TYPE])
         t = time.time_ns() if t_ns is None else t_ns
-        self._w.add_message(ch, log_time=t, data=json.dumps(msg.to_json()).encode(), publish_time=t,
+        self._w.add_message(ch, log_time=t, data=msg.to_json_bytes(), publish_time=t,
                             sequence=self.seq)
         self.seq += 1
         self.counts[key] += 1
@@ -177,7 +177,7 @@ def metrics_from_recording(path: str | Path, out_dir: str | Path | None = None) 
 
 def main(argv: list[str] | None = None) -> int:
     from agent.bus import ZenohBus
-    from agent.runner import StopFlag
+    from agent.runner import StopFlag, profiled
 
     ap = argparse.ArgumentParser(prog="python -m flocktrack.record")
     ap.add_argument("--run", required=True)
@@ -199,12 +199,15 @@ def main(argv: list[str] | None = None) -> int:
         if key == "world/end" and not end_at:
             end_at.append(time.monotonic() + args.linger)
 
-    try:
+    def loop() -> None:
         bus.subscribe_raw("**", on_raw)
         bus.declare_token("recorder/0")
         while not stop.set and not (end_at and time.monotonic() > end_at[0]):
             bus.poll(0.05)
         bus.poll(0)  # whatever is already queued
+
+    try:
+        profiled("recorder/0", loop)
     finally:
         rec.finish()
         bus.close()

@@ -78,3 +78,30 @@ def test_key_expressions():
     assert key_matches("control/**", "control/fault/link")
     assert key_matches("**", "world/tick")
     assert not key_matches("world/tick", "world/tick/x")
+
+
+def _one_of_each():
+    x = np.array([0.1, 1 / 3, -2.5e-300, 1e150])
+    return [_tick(), wire.Truth(k=2, t=0.2, x=x), wire.Meas(src=1, k=2, t=0.2, y=x[:2], b=0.0, pos=x[2:]),
+            wire.Meas(src=1, k=2, t=0.2, y=x[:2], pos=x[2:], v=x[:2] / 7),
+            wire.Xchg(src=1, k=3, r=2, payload={"chi1": np.eye(2) / 3, "chi2": x}),
+            wire.Estimate(src=2, k=7, x=x, x_next=x * 3, P=np.outer(x, x) * 1e-301, name="Kalman",
+                          aux={"eps_1": x[:2]}),
+            wire.Estimate(src=0, k=7, x=x, x_next=x), wire.State(src=4, k=1, pos=x[:2], vel=-x[2:]),
+            wire.Control(k=3, verb="fault", args={"kind": "delay", "agents": [1, 2], "p": 0.5, "on": True}),
+            wire.End(k=9, reason="stopped")]
+
+
+def test_fast_json_writes_what_to_json_says_and_reads_back_bit_exact():
+    """The recorder's orjson path (to_json_bytes) = json.dumps(to_json()), and from_json inverts it."""
+    import json
+
+    for m in _one_of_each():
+        fast = m.to_json_bytes()
+        assert json.loads(fast) == json.loads(json.dumps(m.to_json())), m.TYPE
+        back = wire.from_json(json.loads(fast))
+        key = {"control": "control/fault", "xchg": "agent/1/xchg", "meas": "agent/1/meas", "state": "agent/4/state",
+               "estimate": f"agent/{m.src}/estimate", "tick": "world/tick", "truth": "target/truth", "end": "world/end"}
+        assert wire.encode(back) == wire.encode(wire.decode(key[m.TYPE], wire.encode(m))), m.TYPE
+    odd = wire.State(src=4, k=1, pos=np.arange(6.0).reshape(2, 3)[:, 1], vel=np.zeros(2))  # not contiguous
+    assert json.loads(odd.to_json_bytes()) == json.loads(json.dumps(odd.to_json()))

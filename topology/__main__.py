@@ -11,7 +11,7 @@ import logging
 import sys
 
 from agent.bus import ZenohBus
-from agent.runner import StopFlag, drive
+from agent.runner import StopFlag, drive, profiled
 from agent.scenario import ScenarioError, load_scenario
 
 from .world import build_world
@@ -40,7 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)
     try:
         deadline = sc.run.deadline_s if mode == "lockstep" else 10 * sc.run.T / sc.run.speed
-        rc = drive(world, bus, "world/0", deadline, stop, expect=expect, startup_timeout_s=args.startup_timeout)
+        rc = profiled("world/0", lambda: drive(world, bus, "world/0", deadline, stop, expect=expect,
+                                               startup_timeout_s=args.startup_timeout))
         logging.getLogger("world").info("done: %s", world.stats)
         return rc
     finally:

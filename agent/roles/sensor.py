@@ -251,7 +251,12 @@ class SensorRole(Role):
         if k < self.k or (k == self.k and 0 <= self.r and r < self.r):
             self.counters["late_payloads"] += 1
             return False
-        if k == self.k and self.r >= 0 and j not in self._nbrs:
+        if k == self.k and self.r >= 0:
+            if j not in self._nbrs:
+                self.counters["non_neighbour_payloads"] += 1
+                return False
+        elif (t := self._ticks.get(k)) is not None and j not in t.links[self.i]:
+            # early (a tick we have not begun): the world's link table of that tick already says no
             self.counters["non_neighbour_payloads"] += 1
             return False
         return True
