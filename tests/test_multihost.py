@@ -88,7 +88,9 @@ def test_lockstep_across_hosts_equals_single_host(net, tmp_path):
 @needs_netns
 @pytest.mark.slow
 def test_cut_a_hosts_link_and_heal_it(net, tmp_path):
-    ticks, down_s = 120, 3.0
+    # enough ticks after the heal for host b to reconnect (~0.5 s) even when the world, not waiting for the
+    # dead, runs through the 3 s cut at full lockstep speed (~25–40 ticks/s)
+    ticks, down_s = 400, 3.0
     # lockstep with a short per-wait deadline: waiting on a vanished host costs ≤ 0.3 s per wait
     info = mesh_run(net, tmp_path, [f"run.ticks={ticks}", 'run.mode="lockstep"', "run.deadline_s=0.3"],
                     cut={"port": "p1", "at_tick": 40, "down_s": down_s})
