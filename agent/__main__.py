@@ -12,7 +12,7 @@ import sys
 
 from .assemble import build_sensor, build_target
 from .bus import ZenohBus
-from .runner import StopFlag, drive, profiled
+from .runner import StopFlag, drive, idle_poll_s, profiled
 from .scenario import ScenarioError, load_scenario
 
 
@@ -64,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
         role, name = build_target(sc), "target/0"
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)
     try:
-        return profiled(name, drive, role, bus, name, role_deadline(sc, mode, args.role), stop)
+        return profiled(name, lambda: drive(role, bus, name, role_deadline(sc, mode, args.role), stop,
+                                            idle_s=idle_poll_s(mode)))
     finally:
         bus.close()
 

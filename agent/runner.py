@@ -43,10 +43,19 @@ class StopFlag:
         return self.event.is_set()
 
 
+def idle_poll_s(mode: str) -> float:
+    """How long the node loop waits for a message before it looks at deadlines and timers: realtime
+    roles need a fine clock (round slots of a few ms, payloads held by a delay in ms); lockstep deadlines
+    only catch dead processes, and a coarser wake-up saves ~10 % of the CPU of an idle flock (N = 30)."""
+    return 0.05 if mode == "lockstep" else 0.01
+
+
 def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None = None,
-          expect: Iterable[str] = (), startup_timeout_s: float = 60.0, linger_s: float = 0.5) -> int:
+          expect: Iterable[str] = (), startup_timeout_s: float = 60.0, linger_s: float = 0.5,
+          idle_s: float = 0.01) -> int:
     """Run ``role`` until it finishes. ``expect``: member names that must be alive before
-    :meth:`Role.start` (the world's start barrier). Returns a process exit code."""
+    :meth:`Role.start` (the world's start barrier). ``idle_s``: see :func:`idle_poll_s`.
+    Returns a process exit code."""
     stop = stop or StopFlag()
     members: set[str] = set()
 
@@ -70,7 +79,7 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
             break
     role.start()
     try:
-        _loop(role, bus, name, deadline_s, stop)
+        _loop(role, bus, name, deadline_s, stop, idle_s)
     except Exception:
         write_stats(name, bus, role)
         raise
@@ -82,10 +91,10 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
     return 0
 
 
-def _loop(role: Role, bus, name: str, deadline_s: float, stop: StopFlag) -> None:
+def _loop(role: Role, bus, name: str, deadline_s: float, stop: StopFlag, idle_s: float) -> None:
     last_key, since = None, time.monotonic()
     while not role.finished and not stop.set:
-        if bus.poll(0.01) == 0:
+        if bus.poll(idle_s) == 0:
             role.on_idle()
         now = time.monotonic()
         role.on_timer(now)
