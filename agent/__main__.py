@@ -70,6 +70,5 @@ def main(argv: list[str] | None = None) -> int:
         bus.close()
 
 
-
 if __name__ == "__main__":
     sys.exit(main())

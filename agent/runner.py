@@ -120,27 +120,30 @@ def write_stats(name: str, bus, role: Role | None = None) -> None:
     counters = getattr(role, "counters", None) or getattr(role, "stats", None)
     if counters:
         out["role"] = dict(counters)
-    p = Path(d) / (name.replace("/", "_") + ".json")
+    p = Path(d) / (_file_stem(name) + ".json")
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(out, indent=1, sort_keys=True))
 
 
-def profiled(name: str, fn, *args):
-    """``fn(*args)``, under cProfile when ``$FLOCKTRACK_PROFILE_DIR`` is set (bench/: where a process's
+def _file_stem(name: str) -> str:
+    """'agent/3' → 'agent_3': a process's name as a file name (stats, profiles)."""
+    return name.replace("/", "_")
+
+
+def profiled(name: str, fn):
+    """``fn()``, under cProfile when ``$FLOCKTRACK_PROFILE_DIR`` is set (bench/: where a process's
     time goes); the stats land in ``<dir>/<name>.prof`` (``python -m pstats`` or snakeviz reads them)."""
     import os
 
     d = os.environ.get("FLOCKTRACK_PROFILE_DIR")
     if not d:
-        return fn(*args)
+        return fn()
     import cProfile
     from pathlib import Path
 
-    import time
-
     prof = cProfile.Profile(time.thread_time)  # CPU of this thread: waiting for others is not counted
     try:
-        return prof.runcall(fn, *args)
+        return prof.runcall(fn)
     finally:
         Path(d).mkdir(parents=True, exist_ok=True)
-        prof.dump_stats(str(Path(d) / (name.replace("/", "_") + ".prof")))
+        prof.dump_stats(str(Path(d) / (_file_stem(name) + ".prof")))

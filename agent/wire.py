@@ -60,11 +60,11 @@ def _enc_array(a: np.ndarray) -> dict:
 
 
 def _dec_array(v: Any, ndim: tuple[int, ...] = (1, 2)) -> np.ndarray:
-    if type(v) is not dict or len(v) != 2:
+    if type(v) is not dict or len(v) != 2 or "s" not in v or "d" not in v:
         raise WireError("bad_array", "array must be {s: shape, d: bytes}")
-    shape, data = v.get("s"), v.get("d")
+    shape, data = v["s"], v["d"]
     if type(shape) is not list or len(shape) not in ndim:
-        raise WireError("bad_shape" if "s" in v and "d" in v else "bad_array", f"shape {shape!r}")
+        raise WireError("bad_shape", f"shape {shape!r}")
     size = 1
     for s in shape:
         if type(s) is not int or not 0 <= s <= MAX_ARRAY_ELEMENTS:  # (type() is int: not bool)

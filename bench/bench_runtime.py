@@ -74,7 +74,8 @@ class CpuTrace:
         out = {}
         for name, s in self.samples.items():
             ts, cs = np.array([x[0] for x in s]), np.array([x[1] for x in s])
-            if len(ts) > 1 and ts[0] <= t0 and ts[-1] >= t1 * 0.999999:
+            # the last sample may precede t1 by a sampling period (a process exits right after the run)
+            if len(ts) > 1 and ts[0] <= t0 and ts[-1] >= t1 - 0.5:
                 out[name] = float(np.interp(t1, ts, cs) - np.interp(t0, ts, cs))
         return out
 

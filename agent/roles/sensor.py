@@ -183,9 +183,7 @@ class SensorRole(Role):
             self._joining = True
             self.q = np.array(msg.positions[self.i][: self.q.size], float)
             self.p = np.zeros_like(self.q)
-            for d in (self._ticks, self._truth):
-                for kk in [kk for kk in d if kk < self.k]:
-                    del d[kk]
+            self._forget_past()
         if msg.k >= self.k and msg.n > self.i:
             self._ticks[msg.k] = msg
             if self.r < 0 and msg.k > self.k and not (self.k in self._ticks and self.k in self._truth):
@@ -204,6 +202,11 @@ class SensorRole(Role):
             self.est.finish()
             self.counters["coasted_ticks"] += 1
             self.k += 1
+        self._forget_past()
+
+    def _forget_past(self) -> None:
+        """Drop what belongs to ticks before ``self.k``: their tick and truth messages, buffered and
+        withheld payloads."""
         for d in (self._ticks, self._truth):
             for kk in [kk for kk in d if kk < self.k]:
                 del d[kk]
@@ -462,10 +465,5 @@ class SensorRole(Role):
         self.publish(f"agent/{self.i}/state", State(src=self.i, k=k, pos=self.q.copy(), vel=self.p.copy()))
         self.r = -1
         self.k = k + 1
-        for d in (self._ticks, self._truth):
-            for kk in [kk for kk in d if kk < self.k]:
-                del d[kk]
-        for buf in (self._xbuf, self._withheld):
-            for kr in [kr for kr in buf if kr[0] < self.k]:
-                del buf[kr]
+        self._forget_past()
         self._try_begin()
