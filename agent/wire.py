@@ -15,6 +15,8 @@ key                        type          published by
 ``fusion/estimate``        Estimate      the fusion solver
 ``world/end``              End           the world (the run is over)
 ``world/event``            Control       the world (a control/fault applied, k = tick of effect)
+``launcher/event``         Control       the launcher (``ack`` of a process fault it executed: crash,
+                                         pause, router_restart; ``kill`` / ``restart`` done)
 ``control/<verb>``         Control       dashboard / CLI (faults, pause, ...)
 =========================  ============  =======================================================
 
@@ -402,6 +404,7 @@ _KEY_TYPES = {
     ("world", "tick"): Tick,
     ("world", "end"): End,
     ("world", "event"): Control,
+    ("launcher", "event"): Control,
     ("target", "truth"): Truth,
     ("target", "state"): State,
     ("agent", "meas"): Meas,

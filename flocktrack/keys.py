@@ -14,10 +14,11 @@ identity       may put (ingress ``put``)               may read (``declare_subsc
 agent-i        ``ft/<run>/agent/<i>/**``               world/tick, world/event, world/end, target/truth,
                                                        agent/*/xchg, agent/*/estimate, control/**
 target         ``ft/<run>/target/**``                  world/**, agent/*/estimate
-world          ``ft/<run>/world/**``                   agent/*/state, target/state, control/**
+world          ``ft/<run>/world/**``                   agent/*/state, target/state, control/**,
+                                                       launcher/event
 dashboard      ``ft/<run>/control/**``                 ``ft/<run>/**``
 recorder       nothing                                 ``ft/<run>/**``
-launcher       nothing                                 control/**, world/**
+launcher       ``ft/<run>/launcher/**`` (fault acks)    control/**, world/**
 =============  ======================================  =============================================
 
 and each may declare only its own liveliness token ``ft/<run>/alive/<role>/<id>`` (agent-3 →
@@ -61,14 +62,14 @@ READS = {
     "agent": ["world/tick", "world/event", "world/end", "target/truth", "agent/*/xchg", "agent/*/estimate",
               "control/**"],
     "target": ["world/**", "agent/*/estimate"],
-    "world": ["agent/*/state", "target/state", "control/**"],
+    "world": ["agent/*/state", "target/state", "control/**", "launcher/event"],
     "recorder": ["**"],
     "dashboard": ["**"],
     "launcher": ["control/**", "world/**"],
 }
 WRITES = {"agent": None, "target": ["target/**"], "world": ["world/**"], "dashboard": ["control/**"],
-          "recorder": [], "launcher": []}
-TOKENS = {"target": "target/0", "world": "world/0", "recorder": "recorder/0", "dashboard": "dashboard/0"}
+          "recorder": [], "launcher": ["launcher/**"]}
+TOKENS = {"launcher": "launcher/0", "target": "target/0", "world": "world/0", "recorder": "recorder/0", "dashboard": "dashboard/0"}
 
 
 def identities(n_sensors: int) -> list[str]:

@@ -9,6 +9,12 @@ output with a ``[name]`` prefix, and supervises them with a declared restart pol
 * ``on-failure``  — a process that exits non-zero or is killed is restarted, at most ``max_restarts``
   times, after ``backoff_s`` × 2^(attempt−1) seconds; a restarted sensor rejoins the running flock.
 
+Process faults of the fault plan (crash, pause, router_restart on ``world/event``) are executed here and
+acknowledged on ``launcher/event`` once they have taken effect (the process reaped / stopped / continued,
+the restarted process spawned, the router about to close): in lockstep the world holds the fault's tick
+for that ack, so a crash scheduled for tick k lands at tick k. The launcher is a member of the run
+(liveliness token ``launcher/0``) so the world knows someone will answer.
+
 Shutdown (end of run, Ctrl-C, SIGTERM) sends SIGTERM to every child, waits, then SIGKILLs what is
 left; every child also has PR_SET_PDEATHSIG so it dies with the launcher even if the launcher is
 SIGKILLed. No orphan processes.
@@ -63,6 +69,20 @@ def open_router(port: int, config_file: Path = LOCAL_ROUTER_CFG, host: str = "12
 
     zenoh.init_log_from_env_or("error")
     return zenoh.open(zenoh_config(listen=f"{proto}/{host}:{port}", mode="router", config_file=str(config_file)))
+
+
+def _wait_stopped(pid: int, timeout_s: float) -> bool:
+    """Wait until process ``pid`` is in the stopped state (``T`` in /proc/PID/stat); False on timeout."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            return False
+        if state in ("T", "t"):
+            return True
+        time.sleep(0.002)
+    return False
 
 
 @dataclass
@@ -147,7 +167,8 @@ class Launcher:
         if self.fusion:
             kids.append(Child("fusion/0", [py, "-m", "agent", "fusion", *sc, *mode, *self._common()],
                               RestartPolicy("never"), self.run_dir / "logs" / "fusion.log"))
-        expect = ["--expect", "recorder/0"] if self.record_to is not None else []
+        expect = ["--expect", "launcher/0"]    # the world waits for us: process faults need our acks
+        expect += ["--expect", "recorder/0"] if self.record_to is not None else []
         if self.fusion:
             expect += ["--expect", "fusion/0"]
         for name, _ in self.extra_children:
@@ -215,6 +236,7 @@ class Launcher:
         self.ctl_bus.subscribe("control/kill", self._on_control)
         self.ctl_bus.subscribe("control/restart", self._on_control)
         self.ctl_bus.subscribe("world/event", self._on_world_event)
+        self.ctl_bus.declare_token("launcher/0")
         for c in self.plan():
             self.children[c.name] = c
             self._spawn(c)
@@ -239,14 +261,15 @@ class Launcher:
 
     def _on_world_event(self, key: str, msg) -> None:
         """Process-level faults of the plan (topology/faults.py): crash → SIGKILL (restart at heal),
-        pause → SIGSTOP (SIGCONT at heal), router_restart → close the router (reopen at heal)."""
+        pause → SIGSTOP (SIGCONT at heal), router_restart → close the router (reopen 1 s later). Each is
+        acknowledged on ``launcher/event`` once it has taken effect."""
         if msg.verb != "fault" or msg.args.get("kind") not in ("crash", "pause", "router_restart"):
             return
         from agent.wire import int_list
 
         kind, phase = msg.args["kind"], msg.args.get("phase")
         agents = int_list(msg.args.get("agents", []), 0, self.n)
-        if agents is None:
+        if agents is None or phase not in ("start", "heal"):
             return
         names = [f"agent/{a}" for a in agents]
         self._event("fault", kind, phase=phase, agents=names, k=msg.k)
@@ -265,13 +288,24 @@ class Launcher:
         elif kind == "pause":
             for nme in names:
                 self.kill(nme, signal.SIGSTOP if phase == "start" else signal.SIGCONT)
-        elif kind == "router_restart":
-            if phase == "start" and self.router is not None:
-                self._router_down_at = time.monotonic()
-                threading.Thread(target=self._bounce_router, daemon=True).start()
+        self._ack(msg, agents)
+        if kind == "router_restart" and phase == "start" and self.router is not None:
+            self._router_down_at = time.monotonic()
+            threading.Thread(target=self._bounce_router, daemon=True).start()
 
-    def _bounce_router(self, down_s: float = 1.0) -> None:
-        """Close the embedded router, keep it down ``down_s``, reopen it on the same port."""
+    def _ack(self, msg, agents: list[int]) -> None:
+        """Tell the world a process fault has taken effect (``launcher/event`` ack, k = the fault's tick)."""
+        from agent.wire import Control
+
+        a = msg.args
+        if self.ctl_bus is not None:
+            self.ctl_bus.publish("launcher/event", Control(k=msg.k, verb="ack", args={
+                "id": a.get("id"), "kind": a.get("kind"), "phase": a.get("phase"), "agents": [float(x) for x in agents]}))
+
+    def _bounce_router(self, down_s: float = 1.0, flush_s: float = 0.05) -> None:
+        """Close the embedded router (``flush_s`` after the ack, so the ack reaches the world), keep it
+        down ``down_s``, reopen it on the same port."""
+        time.sleep(flush_s)
         old, self.router = self.router, None
         old.close()
         self._event("router", "down")
@@ -279,16 +313,30 @@ class Launcher:
         self.router = self._open_router()
         self._event("router", "up")
 
-    def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
-        """Fault injection / tests: signal one child."""
+    def kill(self, name: str, sig: int = signal.SIGKILL, wait_s: float = 5.0) -> None:
+        """Fault injection / tests: signal one child and wait (up to ``wait_s``) until the signal has
+        taken effect — SIGKILL: the process is reaped (a restart right after sees it dead; the supervision
+        loop records its exit and applies the restart policy); SIGSTOP: the process is stopped."""
         c = self.children[name]
-        if c.proc and c.proc.poll() is None:
-            c.proc.send_signal(sig)
-            self._event("signal", name, signal=int(sig))
+        if not (c.proc and c.proc.poll() is None):
+            return
+        c.proc.send_signal(sig)
+        self._event("signal", name, signal=int(sig))
+        if sig == signal.SIGKILL:
+            try:
+                c.proc.wait(wait_s)
+            except subprocess.TimeoutExpired:
+                pass
+        elif sig == signal.SIGSTOP:
+            _wait_stopped(c.proc.pid, wait_s)
 
-    def supervise_once(self) -> None:
+    def supervise_once(self, timeout_s: float = 0.0) -> None:
+        """One supervision step: control and fault messages (waiting up to ``timeout_s`` for the first,
+        so a fault is executed the moment it arrives), exits, due restarts."""
         if self.ctl_bus is not None:
-            self.ctl_bus.poll(0)
+            self.ctl_bus.poll(timeout_s)
+        elif timeout_s > 0:
+            time.sleep(timeout_s)
         now = time.monotonic()
         for c in self.children.values():
             if c.proc is None:
@@ -313,7 +361,7 @@ class Launcher:
         world's exit code (or 124 on timeout, 130 when stopped)."""
         t0 = time.monotonic()
         while True:
-            self.supervise_once()
+            self.supervise_once(0.05)
             if on_poll is not None:
                 on_poll(self)
             if self._stopping.is_set():
@@ -325,13 +373,11 @@ class Launcher:
                 while time.monotonic() < end and any(
                         c.proc and c.proc.poll() is None for n, c in self.children.items()
                         if n != "dashboard/0" and not c.service):
-                    self.supervise_once()
-                    time.sleep(0.05)
+                    self.supervise_once(0.05)
                 self.supervise_once()
                 return rc
             if timeout_s is not None and time.monotonic() - t0 > timeout_s:
                 return 124
-            time.sleep(0.05)
 
     def request_stop(self) -> None:
         self._stopping.set()

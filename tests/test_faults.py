@@ -348,3 +348,126 @@ def test_delay_in_ms_in_realtime_and_live_injection_over_zenoh(tmp_path):
     assert s2.get("late_payloads", 0) >= 0.95 * s2["delayed_payloads"]
     assert s5["delayed_payloads"] > 50                  # the live one was applied, at agent 5 only
     assert all(s.get("delayed_payloads", 0) == 0 for name, s in stats.items() if name not in ("agent_2", "agent_5"))
+
+
+def _world_on_localbus(events, **over):
+    from agent.bus import LocalBus
+    from topology.world import build_world
+
+    _, sc = _scenario("chen_switching.toml", events, **over)
+    w = build_world(sc, ack_timeout_s=5.0)
+    bus = LocalBus()
+    w.attach(bus)
+    seen = {"tick": [], "event": []}
+    bus.subscribe("world/tick", lambda key, m: seen["tick"].append(m))
+    bus.subscribe("world/event", lambda key, m: seen["event"].append(m))
+    return w, bus, seen
+
+
+def _ack(bus, k, fid, kind, phase, agents=()):
+    from agent.wire import Control
+
+    bus.publish("launcher/event", Control(k=k, verb="ack", args={"id": fid, "kind": kind, "phase": phase,
+                                                                 "agents": [float(a) for a in agents]}))
+    bus.drain()
+
+
+def test_lockstep_world_holds_a_process_fault_tick_for_the_launcher():
+    """A crash scheduled for tick k lands at tick k: the world holds tick k until the launcher acks (the
+    crashed sensor is dead in tick k's membership); the heal tick waits for the ack and the restarted
+    sensor's return; a router restart's tick is released into the outage and the next one waits for every
+    member's return (topology/fault_hold.py)."""
+    events = [{"kind": "crash", "targets": "agents:1", "start": 3, "heal": 6},
+              {"kind": "router_restart", "start": 9}]
+    w, bus, seen = _world_on_localbus(events)
+    members = [("launcher", 0), ("agent", 0), ("agent", 1), ("agent", 2), ("target", 0), ("recorder", 0)]
+    for m in members:
+        w.on_member(*m, True)
+    w.start()
+    bus.drain()
+    ks = lambda: [t.k for t in seen["tick"]]   # noqa: E731
+    for _ in range(3):
+        w.on_deadline()
+        bus.drain()
+    assert ks() == [0, 1, 2] and seen["event"][-1].args["kind"] == "crash"   # tick 3 held: its fault is out
+    w.on_deadline()
+    bus.drain()
+    assert ks() == [0, 1, 2]                     # nothing to close: still held
+    _ack(bus, 3, 0, "crash", "start", [1])
+    assert ks()[-1] == 3 and seen["tick"][-1].alive == [True, False, True] and 1 not in seen["tick"][-1].links[0]
+    w.on_member("agent", 1, False)               # its token goes a moment later: nothing changes
+    for _ in range(3):
+        w.on_deadline()
+        bus.drain()
+    assert ks()[-1] == 5                         # the heal tick 6 waits for the ack ...
+    _ack(bus, 6, 0, "crash", "heal", [1])
+    assert ks()[-1] == 5                         # ... and for the restarted sensor
+    w.on_member("agent", 1, True)
+    bus.drain()
+    assert ks()[-1] == 6 and seen["tick"][-1].alive == [True, True, True]
+    for _ in range(3):
+        w.on_deadline()
+        bus.drain()
+    assert ks()[-1] == 8
+    _ack(bus, 9, 1, "router_restart", "start")
+    assert ks()[-1] == 8                         # held until the outage shows ...
+    for m in members:
+        w.on_member(*m, False)                   # the router went down: every token goes
+    bus.drain()
+    assert ks()[-1] == 9                         # ... then tick 9 goes out (into the outage, lost)
+    w.on_deadline()
+    bus.drain()
+    assert ks()[-1] == 9                         # tick 10 waits for everyone's return
+    for m in members[:-1]:
+        w.on_member(*m, True)
+    bus.drain()
+    assert ks()[-1] == 9                         # the recorder is not back yet
+    w.on_member("recorder", 0, True)
+    bus.drain()
+    assert ks()[-1] == 10 and w.stats.get("fault_hold_timeouts", 0) == 0
+
+
+def test_process_fault_hold_gives_up_after_its_timeout_and_needs_a_launcher():
+    events = [{"kind": "pause", "targets": "agents:2", "start": 1, "heal": 2}]
+    w, bus, seen = _world_on_localbus(events)
+    w.start()                                    # no launcher: nobody would answer, nothing is held
+    w.on_deadline()
+    bus.drain()
+    assert [t.k for t in seen["tick"]] == [0, 1]
+    w, bus, seen = _world_on_localbus(events)
+    w.on_member("launcher", 0, True)
+    w.start()
+    w.on_deadline()
+    bus.drain()
+    assert [t.k for t in seen["tick"]] == [0]
+    w.on_timer(100.0)
+    w.on_timer(104.0)
+    assert [t.k for t in seen["tick"]] == [0]
+    w.on_timer(105.5)                            # held longer than ack_timeout_s = 5: go on, counted
+    bus.drain()
+    assert [t.k for t in seen["tick"]] == [0, 1] and w.stats["fault_hold_timeouts"] == 1
+
+
+def test_a_sensor_sits_out_a_tick_whose_membership_marks_it_dead():
+    """The world's membership is authoritative: a sensor publishes nothing for a tick that marks it dead
+    (cut off, or not yet seen back), and takes part again from the next tick that marks it alive."""
+    from agent.assemble import build_sensor, build_target
+    from agent.bus import LocalBus
+    from topology.world import build_world
+
+    _, sc = _scenario("gu_hu_normal.toml", [], **{"run.ticks": 6})
+    bus = LocalBus()
+    w, tgt, s0 = build_world(sc), build_target(sc), build_sensor(sc, 0)
+    others = [build_sensor(sc, i) for i in range(1, sc.sensors.n)]
+    for r in (w, tgt, s0, *others):
+        r.attach(bus)
+    pubs = []
+    bus.subscribe("agent/0/**", lambda key, m: pubs.append((key, m.k)))
+    # sensor 0 is dead in ticks 0–2 (the world flips it back while tick 2 is under way)
+    bus.subscribe("world/tick", lambda key, m: w.alive.__setitem__(0, m.k >= 2))
+    w.alive[0] = False
+    w.start()
+    bus.drain()
+    assert s0.counters["sat_out_ticks"] == 3 and s0.k == 6
+    assert {k for _, k in pubs} == {3, 4, 5}
+    assert {key.split("/")[-1] for key, _ in pubs} >= {"meas", "xchg", "estimate", "state"}

@@ -129,7 +129,9 @@ def test_acl_rules_follow_the_roles():
     assert rules["world-write"]["key_exprs"] == ["ft/r/world/**"]
     assert rules["target-write"]["key_exprs"] == ["ft/r/target/**"]
     assert rules["dashboard-write"]["key_exprs"] == ["ft/r/control/**"]
-    assert "recorder-write" not in rules and "launcher-write" not in rules
+    assert "recorder-write" not in rules
+    assert rules["launcher-write"]["key_exprs"] == ["ft/r/launcher/**"]   # its fault acks, nothing else
+    assert "ft/r/launcher/event" in rules["world-read"]["key_exprs"]
     assert rules["agent-3-token"]["key_exprs"] == ["ft/r/alive/agent/3"]
     subj = {s["id"]: s for s in a["subjects"]}
     assert subj["agent-3"] == {"id": "agent-3", "cert_common_names": ["agent-3"], "usernames": ["agent-3"]}

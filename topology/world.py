@@ -9,6 +9,14 @@ At tick k the world publishes ``tick`` {k, t, links, weights, b, δ_max, alive, 
 
 It then waits for every alive sensor's ``state`` k and the target's ``state`` k (or the deadline),
 and starts tick k+1. It is the only role that knows all positions.
+
+Process faults (crash, pause, router_restart) are executed by the launcher. In lockstep, when a launcher
+is a member of the run (its liveliness token ``launcher/0``), the world publishes such a fault's
+transition on ``world/event`` and holds tick k until the launcher acknowledges it on ``launcher/event``
+(the process is dead / stopped / continued, the router is going down) — and, for a crash's heal, until
+the restarted sensor is a member again; after a router restart the next tick waits for every member's
+return — so a crash scheduled for tick k lands at tick k and the sensor is back at its heal tick
+(``fault_hold.py``). Without a launcher, or past ``ack_timeout_s``, the tick goes on.
 """
 
 from __future__ import annotations
@@ -18,10 +26,11 @@ import numpy as np
 from agent.bus import Bus
 from agent.roles.common import Role
 from agent.seeding import rng_for
-from agent.wire import Control, End, Message, State, Tick
+from agent.wire import Control, End, Message, State, Tick, int_list
 
 from agent.scenario import FaultsCfg, Scenario, ScenarioError, parse_fault_event
 
+from .fault_hold import FaultHold
 from .faults import FaultPlan
 from .graph import GraphSpec, PeriodicSchedule, edge_weights, max_degree, neighbour_lists, range_adjacency
 
@@ -47,6 +56,9 @@ def build_world(sc: Scenario, **kw) -> "WorldRole":
                      faults=FaultPlan(sc.faults, sc.sensors.n, sc.run.seed), **kw)
 
 
+#: the fault kinds the launcher executes; in lockstep the world waits for its ack (``launcher/event``)
+PROCESS_FAULTS = frozenset({"crash", "pause", "router_restart"})
+
 #: the control verbs the world executes (kill/restart: the launcher; outlier_burst: the sensors)
 WORLD_VERBS = frozenset({"pause", "resume", "step", "speed", "link_drop", "link_heal", "link_loss", "partition",
                          "heal", "inject", "heal_fault"})
@@ -58,8 +70,11 @@ class WorldRole(Role):
     def __init__(self, n: int, ticks: int, T: float, positions0: np.ndarray, target_pos0: np.ndarray,
                  schedule: PeriodicSchedule | None = None, radius: float = np.inf,
                  sensing_range: float = np.inf, beta: float = 1.0, realtime: bool = False, speed: float = 1.0,
-                 seed: int = 0, faults: FaultPlan | None = None):
+                 seed: int = 0, faults: FaultPlan | None = None, ack_timeout_s: float = 30.0):
         super().__init__(ticks)
+        # process faults (lockstep, with a launcher): tick k waits for the launcher (fault_hold.py)
+        self.hold = FaultHold(timeout_s=ack_timeout_s)
+        self._held_graph: tuple[np.ndarray, list[float]] | None = None   # held tick's links before the dead mask
         self.realtime = bool(realtime)
         self.period = float(T) / float(speed)  # wall-clock seconds per tick in realtime
         self._t0: float | None = None
@@ -95,6 +110,7 @@ class WorldRole(Role):
         bus.subscribe("agent/*/state", self._on_state)
         bus.subscribe("target/state", self._on_target_state)
         bus.subscribe("control/**", self._on_control)
+        bus.subscribe("launcher/event", self._on_launcher_event)
 
     # ------------------------------------------------------------------ control plane
     def _on_control(self, key: str, msg: Message) -> None:
@@ -226,16 +242,22 @@ class WorldRole(Role):
         self._publish_tick()
 
     def on_member(self, role: str, ident: int, alive: bool) -> None:
-        """A sensor process appeared or vanished: a dead node has no links until it returns; a
-        returning node is expected to report from the next tick on."""
+        """A process appeared or vanished. A dead sensor has no links until it returns; a returning one is
+        expected to report from the next tick on. (And what a held tick waits for: fault_hold.py.)"""
+        outage = self.hold.member((role, ident), alive)
         if role == "agent" and 0 <= ident < self.n and self.alive[ident] != alive:
             self.alive[ident] = alive
             if not alive:
                 self._expected.discard(ident)
                 self._check()
+        self._release_fault_hold(force=outage)
 
     def on_timer(self, now: float) -> None:
-        """Realtime pacing: tick k closes at t0 + (k+1)·T whatever has arrived (late = lost)."""
+        """Realtime pacing: tick k closes at t0 + (k+1)·T whatever has arrived (late = lost). In any mode:
+        a tick held for the launcher's acks goes on after ``ack_timeout_s``."""
+        if self.hold.check_timeout(now, self._held_graph is not None):
+            self.stats["fault_hold_timeouts"] = self.hold.timeouts
+            self._release_fault_hold()
         if not self.realtime or self.finished:
             return
         if self._t0 is None:
@@ -253,6 +275,11 @@ class WorldRole(Role):
     # ------------------------------------------------------------------ the link table
     def graph(self, k: int) -> tuple[np.ndarray, list[float]]:
         """Symmetric adjacency and visibility of tick k before the fault plan."""
+        adj, b = self._linked_graph(k)
+        return self._mask_dead(adj), b
+
+    def _linked_graph(self, k: int) -> tuple[np.ndarray, list[float]]:
+        """The schedule's or range's links with the world's link faults, dead nodes not yet removed."""
         if self.schedule is not None:
             g = self.schedule.at(k)
             adj = g.adjacency()
@@ -263,11 +290,15 @@ class WorldRole(Role):
             dist = np.linalg.norm(self.positions[:, :d] - self.target_pos[None, :], axis=1)
             b = [self.beta if di <= self.sensing_range else 0.0 for di in dist]
         self._apply_link_faults(adj)
+        return adj, b
+
+    def _mask_dead(self, adj: np.ndarray) -> np.ndarray:
+        """A dead node has no links (in place; returns ``adj``)."""
         for i, a in enumerate(self.alive):
             if not a:
                 adj[i, :] = 0.0
                 adj[:, i] = 0.0
-        return adj, b
+        return adj
 
     def make_tick(self, k: int, graph: tuple[np.ndarray, list[float]] | None = None) -> Tick:
         """The tick message: links[i] = the nodes whose payloads i hears (directed once the fault plan
@@ -282,15 +313,52 @@ class WorldRole(Role):
                     delta_max=max_degree(M), alive=list(self.alive), positions=self.positions.copy())
 
     def _publish_tick(self) -> None:
-        g = self.graph(self.k)
+        adj, b = self._linked_graph(self.k)
+        g = (self._mask_dead(adj.copy()), b)
         if self.plan is not None and not self.plan.empty:
             for phase, f in self.plan.transitions(self.k, g[0]):
                 self.stats[f"fault_{phase}s"] = self.stats.get(f"fault_{phase}s", 0) + 1
                 self.publish("world/event", Control(k=self.k, verb="fault", args=f.event_args(phase)))
+                if f.cfg.kind in PROCESS_FAULTS and self.hold.launcher and not self.realtime:
+                    self.hold.expect(f.id, phase, f.cfg.kind, ("world", 0))
+        if self.hold.blocked:
+            self._held_graph = (adj, b)   # tick k waits for the launcher (fault_hold.py)
+            return
+        self._emit_tick(g)
+
+    def _emit_tick(self, g: tuple[np.ndarray, list[float]]) -> None:
         self.last_tick = self.make_tick(self.k, g)
         self._expected = {i for i in range(self.n) if self.alive[i]}
         self._open = True
         self.publish("world/tick", self.last_tick)
+
+    def _on_launcher_event(self, key: str, msg: Message) -> None:
+        """``ack`` {id, kind, phase, agents}: the launcher executed a process fault. A crashed sensor is dead
+        from this tick on (its liveliness token may take a moment to go); a restarted one is awaited."""
+        assert isinstance(msg, Control)
+        a = msg.args
+        fid, phase = a.get("id"), a.get("phase")
+        if msg.verb != "ack" or isinstance(fid, bool) or not isinstance(fid, (int, float)):
+            return
+        agents = int_list(a.get("agents", []), 0, self.n) or []
+        kind = a.get("kind")
+        if kind == "crash" and phase == "start":
+            for i in agents:
+                if self.alive[i]:
+                    self.alive[i] = False
+                    self._expected.discard(i)
+        self.hold.ack(int(fid), phase, kind, agents)
+        self._release_fault_hold()
+        self._check()
+
+    def _release_fault_hold(self, force: bool = False) -> None:
+        """Publish the held tick once the launcher has done all it was asked and the members are back
+        (``force``: now, whatever is still awaited)."""
+        if self._held_graph is None or (self.hold.blocked and not force):
+            return
+        adj, b = self._held_graph
+        self._held_graph = None
+        self._emit_tick((self._mask_dead(adj), b))
 
     # ------------------------------------------------------------------ collecting states
     def _on_state(self, key: str, msg: Message) -> None:

@@ -195,14 +195,19 @@ class SensorRole(Role):
         router was down): predict through them with no information (b = 0, no neighbours) and stand
         still, so that we take part again from tick ``k`` on."""
         while self.k < min(k, self.ticks):
-            ctx = TickContext(k=self.k, t=self.k * self.T, n=self._ticks[k].n, b=0.0, T=self.T)
-            self.est.start(ctx, np.zeros(self.sensor.C.shape[0]))
-            for r in range(self.est.rounds):
-                self.est.absorb(r, {})
-            self.est.finish()
+            self._predict_blind(self._ticks[k].n)
             self.counters["coasted_ticks"] += 1
-            self.k += 1
         self._forget_past()
+
+    def _predict_blind(self, n: int) -> None:
+        """Tick ``self.k`` without information: the estimator's rounds with b = 0 and no neighbours
+        (its prediction only), nothing published; the sensor stands still."""
+        ctx = TickContext(k=self.k, t=self.k * self.T, n=n, b=0.0, T=self.T)
+        self.est.start(ctx, np.zeros(self.sensor.C.shape[0]))
+        for r in range(self.est.rounds):
+            self.est.absorb(r, {})
+        self.est.finish()
+        self.k += 1
 
     def _forget_past(self) -> None:
         """Drop what belongs to ticks before ``self.k``: their tick and truth messages, buffered and
@@ -377,9 +382,16 @@ class SensorRole(Role):
                 self._accept_xchg(key, msg)  # arrives late: counted and dropped by the handler
 
     def _begin(self) -> None:
+        tick, truth = self._ticks[self.k], self._truth[self.k]
+        if not tick.alive[self.i]:
+            # the world's membership is authoritative: a tick that marks us dead (cut off, not yet seen
+            # back after a restart) is sat out — predicted only, nothing published
+            self._predict_blind(tick.n)
+            self.counters["sat_out_ticks"] += 1
+            self._forget_past()
+            return
         if self._held:
             self._release_held()
-        tick, truth = self._ticks[self.k], self._truth[self.k]
         b = float(tick.b[self.i])
         y = self.sensor.measure(truth.x, b, self.rng)
         if self._faults:
