@@ -29,6 +29,7 @@ from typing import Any, Literal
 import numpy as np
 
 from .models import double_integrator
+from .suggest import did_you_mean
 
 Matrix = list[list[float]]
 Vector = list[float]
@@ -371,6 +372,9 @@ def _coerce(value: Any, tp: Any, src: str, key: str) -> Any:
         return value
     if origin is Literal:
         if value not in args:
+            hint = did_you_mean(value, args, quote="'") if isinstance(value, str) else ""
+            if hint:
+                raise ScenarioError(src, key, bad.problem, f"{hint}write {key} as {_describe(tp)}")
             raise bad
         return value
     if tp == Vector:
@@ -413,7 +417,7 @@ def _build(cls: type, table: Any, src: str, section: str) -> Any:
     for k in table:
         if k not in names:
             raise ScenarioError(src, f"{section}.{k}", "unknown key",
-                                f"remove it or use one of: {', '.join(sorted(names))}")
+                                f"{did_you_mean(k, names)}remove it or use one of: {', '.join(sorted(names))}")
     kw = {}
     for f in fields(cls):
         key = f"{section}.{f.name}"
@@ -694,7 +698,8 @@ def parse_uav_scenario(data: dict, source: str) -> Scenario:
     rc_keys = {"name", "T", "mode", "deadline_s", "speed", "seed", "duration", "ticks", "burn_in"}
     for k in run:
         if k not in rc_keys:
-            raise ScenarioError(source, f"run.{k}", "unknown key", f"use one of: {', '.join(sorted(rc_keys))}")
+            raise ScenarioError(source, f"run.{k}", "unknown key",
+                                f"{did_you_mean(k, rc_keys)}use one of: {', '.join(sorted(rc_keys))}")
     T = run.get("T", 0.05)
     duration = run.get("duration", 100.0)
     if isinstance(run.get("ticks"), int) and isinstance(T, (int, float)):
@@ -731,7 +736,7 @@ def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
         return parse_uav_scenario(data, source)
     for k in data:
         if k not in _SECTIONS:
-            raise ScenarioError(source, k, "unknown table", f"use one of: {', '.join(_SECTIONS)}")
+            raise ScenarioError(source, k, "unknown table", f"{did_you_mean(k, _SECTIONS)}use one of: {', '.join(_SECTIONS)}")
     for k in _REQUIRED:
         if k not in data:
             raise ScenarioError(source, k, "table is required", f"add a [{k}] table")

@@ -364,6 +364,12 @@ class Control(Message):
         return dict(verb=_str(d.get("verb"), "verb", 64), args=clean)
 
 
+#: every verb on ``control/<verb>`` and who executes it (the world: topology/world.py WORLD_VERBS; the
+#: launcher: kill, restart; the sensors: outlier_burst)
+CONTROL_VERBS = ("pause", "resume", "step", "speed", "link_drop", "link_heal", "link_loss", "partition", "heal",
+                 "inject", "heal_fault", "kill", "restart", "outlier_burst")
+
+
 def control_args(items: list[str] | str) -> dict[str, Any]:
     """``name=value`` words (a list, or one space-separated string) → Control args; values are read as TOML
     (``80`` → int, ``0.3`` → float, ``[1, 2]`` → list, ``true``), anything else stays a string

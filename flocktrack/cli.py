@@ -3,7 +3,7 @@
     flocktrack validate SCENARIO
     flocktrack run SCENARIO [--transport zenoh|inproc] [--mode lockstep|realtime] [--ticks N] [--seed S]
                             [--estimator NAME] [--rounds R] [--set section.key=value ...]
-                            [--restart never|on-failure] --out DIR
+                            [--restart never|on-failure] [-v] [--out DIR]
     flocktrack design SCENARIO --out FILE
     flocktrack fault VERB [name=value ...] --run RUN --connect ENDPOINT
     flocktrack compose SCENARIO [--out DIR]
@@ -21,6 +21,22 @@ import tomllib
 from pathlib import Path
 
 from agent.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with "did you mean …?" for a misspelt sub-command or choice."""
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        import re
+
+        from agent.suggest import did_you_mean
+
+        m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if m:
+            hint = did_you_mean(m.group(1), re.findall(r"'([^']*)'", m.group(2)), quote="'")
+            if hint:
+                message = f"{message}; {hint.strip()}"
+        super().error(message)
 
 
 def _parse_value(text: str):
@@ -62,32 +78,47 @@ def cmd_validate(args) -> int:
     return 0
 
 
+def default_out(scenario: str) -> Path:
+    """``runs/<scenario>-<YYYYmmdd-HHMMSS>``: where a run goes without ``--out``."""
+    import time as _t
+
+    return Path("runs") / f"{Path(scenario).stem}-{_t.strftime('%Y%m%d-%H%M%S')}"
+
+
 def cmd_run(args) -> int:
     named = {"run.ticks": args.ticks, "run.seed": args.seed, "estimator.name": args.estimator,
              "estimator.rounds": args.rounds, "run.mode": args.mode}
     data = scenario_data(args.scenario, args.set or [], **named)
     sc = parse_scenario(data, args.scenario)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else default_out(args.scenario)
     out.mkdir(parents=True, exist_ok=True)
     from .run import run_inproc_to_dir, run_zenoh_to_dir
 
+    def report(summary: dict, info: dict) -> None:
+        if info.get("rc") not in (0, None):
+            return
+        print(f"{sc.run.name}: {sc.run.ticks} ticks in {info['wall_s']:.1f} s over {args.transport} — network RMSE "
+              f"{_g(summary.get('network_rmse'))}, final {_g(summary.get('final_rmse'))}, "
+              f"min distance {_g(summary.get('min_inter_agent_distance'))}, λ₂ min {_g(summary.get('lambda2_min'))}\n"
+              f"results in {out}/: summary.json, metrics.csv, run.json"
+              + (", recording.mcap, events.json, logs/" if args.transport == "zenoh" or args.record else ""),
+              flush=True)
+
     if args.transport == "inproc":
         summary, info = run_inproc_to_dir(sc, data, out, record=args.record, show_progress=True)
-    else:
-        if args.dashboard:
-            print(f"dashboard: http://localhost:{args.dashboard_port}", file=sys.stderr)
-        summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
-                                         max_restarts=args.max_restarts, quiet=args.quiet,
-                                         dashboard_port=args.dashboard_port if args.dashboard else None,
-                                         keep_dashboard=args.dashboard and not args.no_linger,
-                                         secure_dir=(args.keys or str(out / "keys")) if args.secure else None)
-        if info.get("rc") not in (0, None):
-            print(f"error: run ended with code {info['rc']}; see {out}/logs/", file=sys.stderr)
-            return 1
-    print(f"{sc.run.name}: {sc.run.ticks} ticks in {info['wall_s']:.1f} s over {args.transport} — network RMSE "
-          f"{_g(summary.get('network_rmse'))}, final {_g(summary.get('final_rmse'))}, "
-          f"min distance {_g(summary.get('min_inter_agent_distance'))}, λ₂ min {_g(summary.get('lambda2_min'))}; "
-          f"wrote {out}/summary.json, metrics.csv")
+        report(summary, info)
+        return 0
+    if args.dashboard:
+        print(f"dashboard: http://localhost:{args.dashboard_port}", file=sys.stderr)
+    summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
+                                     max_restarts=args.max_restarts, quiet=args.quiet, verbose=args.verbose,
+                                     dashboard_port=args.dashboard_port if args.dashboard else None,
+                                     keep_dashboard=args.dashboard and not args.no_linger,
+                                     secure_dir=(args.keys or str(out / "keys")) if args.secure else None,
+                                     on_results=report)
+    if info.get("rc") not in (0, None):
+        print(f"error: run ended with code {info['rc']}; see {out}/logs/", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -98,8 +129,13 @@ def _g(v) -> str:
 def cmd_fault(args) -> int:
     """Publish one control/fault command on a running flock (what the dashboard's buttons do)."""
     from agent.bus import ZenohBus
-    from agent.wire import Control, WireError, control_args, decode, encode
+    from agent.suggest import did_you_mean
+    from agent.wire import CONTROL_VERBS, Control, WireError, control_args, decode, encode
 
+    if args.verb not in CONTROL_VERBS:
+        print(f"error: unknown verb {args.verb!r}; {did_you_mean(args.verb, CONTROL_VERBS, quote=chr(39))}"
+              f"the verbs are: {', '.join(CONTROL_VERBS)}", file=sys.stderr)
+        return 2
     try:
         kv = control_args(args.args)
     except ValueError as exc:
@@ -174,7 +210,7 @@ def cmd_replay(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="flocktrack", description=__doc__.split("\n\n")[0])
+    ap = _Parser(prog="flocktrack", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     v = sub.add_parser("validate", help="check a scenario file")
     v.add_argument("scenario")
@@ -188,7 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--restart", choices=["never", "on-failure"], default="never", help="sensor restart policy")
     r.add_argument("--max-restarts", type=int, default=3)
     r.add_argument("--record", action="store_true", help="inproc: also write DIR/recording.mcap (zenoh always records)")
-    r.add_argument("--quiet", action="store_true", help="do not forward the processes' logs")
+    r.add_argument("--quiet", action="store_true", help="no status line, no process output on the terminal")
+    r.add_argument("-v", "--verbose", action="store_true",
+                   help="also show every process's log lines (always in OUT/logs/; without -v: warnings and errors)")
     r.add_argument("--dashboard", action="store_true", help="zenoh: start the live Viser dashboard")
     r.add_argument("--dashboard-port", type=int, default=8080)
     r.add_argument("--no-linger", action="store_true", help="close the dashboard when the run ends")
@@ -200,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--estimator", choices=["minimax", "kalman", "hinf_switching"])
     r.add_argument("--rounds", type=int)
     r.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
-    r.add_argument("--out", required=True)
+    r.add_argument("--out", help="output directory (default: runs/<scenario>-<YYYYmmdd-HHMMSS>)")
     r.set_defaults(fn=cmd_run)
     dg = sub.add_parser("design", help="solve and store a scenario's pre-run design (min_energy SDP, Chen's K)")
     dg.add_argument("scenario")
@@ -208,8 +246,9 @@ def main(argv: list[str] | None = None) -> int:
     dg.add_argument("--out", required=True)
     dg.set_defaults(fn=cmd_design)
     fl = sub.add_parser("fault", help="send a control/fault command to a running flock")
-    fl.add_argument("verb", help="pause, resume, step, speed, kill, restart, link_drop, link_heal, link_loss, "
-                                 "partition, heal, outlier_burst")
+    from agent.wire import CONTROL_VERBS
+
+    fl.add_argument("verb", help=", ".join(CONTROL_VERBS))
     fl.add_argument("args", nargs="*", help="name=value (TOML values), e.g. agent=3 or groups=[0,0,1,1]")
     fl.add_argument("--run", required=True, help="the run name printed by `flocktrack run`")
     fl.add_argument("--connect", default="tcp/127.0.0.1:7447")

@@ -85,6 +85,19 @@ def _wait_stopped(pid: int, timeout_s: float) -> bool:
     return False
 
 
+_ALARMS = ("WARNING", "ERROR", "CRITICAL", "error:", "Traceback")
+
+
+def _worth_showing(line: str, in_traceback: bool) -> tuple[bool, bool]:
+    """Whether a child's log line belongs on the terminal without ``-v`` (a warning, an error, a
+    traceback with its last line), and whether we are inside a traceback after it."""
+    if line.startswith("Traceback"):
+        return True, True
+    if in_traceback:
+        return True, line[:1].isspace()
+    return line.startswith(_ALARMS) or " WARN " in line or " ERROR " in line, False
+
+
 @dataclass
 class Child:
     name: str
@@ -110,7 +123,7 @@ class Launcher:
                  mode: str, port: int | None = None, policy: RestartPolicy = RestartPolicy(),
                  record_to: Path | None = None, meta_file: Path | None = None, quiet: bool = False,
                  extra_children: list[tuple[str, list[str]]] | None = None, dashboard_port: int | None = None,
-                 keys=None, mesh=None, fusion: bool = False):
+                 keys=None, mesh=None, fusion: bool = False, verbose: bool = False):
         self.fusion = bool(fusion)  # start the fusion solver process (scenarios with [uavs]/[fusion])
         self.run, self.run_dir, self.n = run, Path(run_dir), int(n_sensors)
         self.scenario_file, self.design_file, self.mode = scenario_file, design_file, mode
@@ -126,7 +139,11 @@ class Launcher:
         self.endpoint = f"tls/localhost:{self.port}" if keys is not None else f"tcp/127.0.0.1:{self.port}"
         self.policy = policy
         self.record_to, self.meta_file = record_to, meta_file
-        self.quiet = quiet
+        # the children's output always goes to DIR/logs/; on the terminal: every line with ``verbose``,
+        # warnings and errors only by default, nothing with ``quiet``
+        self.quiet, self.verbose = quiet, verbose
+        self.deadlines = 0                 # "deadline on" lines seen in the children's logs (missed rounds)
+        self.on_output = None              # called before a child's line is printed (a status line clears)
         self.children: dict[str, Child] = {}
         self.router = None
         self.events: list[dict] = []   # supervisor timeline (spawn / exit / restart), also in run.json
@@ -216,11 +233,18 @@ class Launcher:
         threading.Thread(target=self._forward, args=(c, c.proc), daemon=True).start()
 
     def _forward(self, c: Child, proc: subprocess.Popen) -> None:
+        in_traceback = False
         with open(c.log_path, "ab") as logf:
             for line in proc.stdout:  # type: ignore[union-attr]
                 logf.write(line)
-                if not self.quiet:
-                    sys.stderr.write(f"[{c.name}] {line.decode(errors='replace')}")
+                text = line.decode(errors="replace")
+                if "deadline on" in text:
+                    self.deadlines += 1
+                show, in_traceback = _worth_showing(text, in_traceback)
+                if not self.quiet and (self.verbose or show):
+                    if self.on_output is not None:
+                        self.on_output()
+                    sys.stderr.write(f"[{c.name}] {text}")
 
     def _event(self, what: str, name: str, **kw) -> None:
         with self._lock:

