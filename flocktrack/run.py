@@ -209,6 +209,7 @@ def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, 
             "restarts": {n: c.restarts for n, c in launcher.children.items() if c.restarts},
             "exits": {n: c.exits for n, c in launcher.children.items()}}
     (out / "run.json").write_text(json.dumps(info, indent=2))
+    launcher.write_events(out / "events.json")
     return summary, info
 
 
