@@ -1,7 +1,8 @@
 """Repeat tests to find flakes: ``python bench/flake_hunt.py TESTS --repeat 10 --parallel 2``.
 
 TESTS are what pytest takes (files, ``file::test`` node ids, directories); ``-k EXPR`` / ``-m EXPR``
-narrow them as in pytest. Every collected test runs ``--repeat`` times, each run in its own
+narrow them as in pytest. ``--as-given`` runs each TESTS argument as one unit instead (a file whole: its
+tests share their module fixtures, e.g. one live run for all the browser tests). Every collected test runs ``--repeat`` times, each run in its own
 ``python -m pytest`` process with its own ``--basetemp`` (so the logs and run directories of a failed
 run stay on disk), ``--parallel`` runs at once — two copies of a multi-process test load a 2-core
 machine the way a busy CI host does.
@@ -87,13 +88,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("tests", nargs="+", help="pytest files / node ids")
     ap.add_argument("--repeat", type=int, default=10)
     ap.add_argument("--parallel", type=int, default=2, help="runs at once (2 loads a 2-core machine)")
+    ap.add_argument("--as-given", action="store_true", help="one unit per TESTS argument (a file runs whole)")
     ap.add_argument("-k", help="pytest -k expression")
     ap.add_argument("-m", help="pytest -m expression")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per run before it counts as failed")
     ap.add_argument("--workdir", type=Path, help="where run logs go (default: a new temporary directory)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "flake_hunt.json")
     a = ap.parse_args(argv)
-    nodes = collect(a.tests, a.k, a.m)
+    nodes = list(a.tests) if a.as_given else collect(a.tests, a.k, a.m)
     workdir = a.workdir or Path(tempfile.mkdtemp(prefix="flake_hunt_"))
     jobs = [(n, i) for i in range(a.repeat) for n in nodes]   # round-robin: different tests overlap
     print(f"flake_hunt: {len(nodes)} test(s) × {a.repeat} = {len(jobs)} runs, {a.parallel} at once; logs in {workdir}",
