@@ -118,3 +118,16 @@ def test_fault_kind_did_you_mean():
     with pytest.raises(ScenarioError) as e:
         parse_scenario(data, "demo.toml")
     assert e.value.key == "faults.events[0].kind" and "did you mean 'crash'?" in str(e.value)
+
+
+def test_only_warnings_errors_and_tracebacks_reach_the_terminal_without_v():
+    from flocktrack.launch import _worth_showing
+
+    lines = ["INFO agent.runner: agent/7: deadline on (93, 0)\n", "WARNING agent.runner: agent/7: starting without\n",
+             "Traceback (most recent call last):\n", '  File "x.py", line 1, in <module>\n', "ValueError: boom\n",
+             "INFO world: done\n", "2026-12-01T17:26:15Z  WARN zenoh::net: lost the router\n", "error: bad scenario\n"]
+    shown, tb = [], False
+    for ln in lines:
+        show, tb = _worth_showing(ln, tb)
+        shown.append(show)
+    assert shown == [False, True, True, True, True, False, True, True]
