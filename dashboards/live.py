@@ -5,7 +5,9 @@ process's thread into a :class:`~dashboards.state.DashboardState`; at most every
 the scene is redrawn from a snapshot (a few batched objects: one point cloud for all sensors, one
 line-segment set for all links, …) and every ``plot_period`` seconds the uPlot panels and the status
 text. GUI callbacks run on Viser's threads; they only set fields and queue control messages, which this
-thread publishes — the bus and the state are touched by one thread only.
+thread publishes — the bus and the state are touched by one thread only. Each browser tab's camera is
+framed on the flock and follows it until the user moves it (:meth:`DashboardUI.update_view`; the camera
+state has its own lock, as the tabs' camera reports arrive on Viser's threads).
 
 Replay (``python -m dashboards --recording FILE --port P``): the recording is read with ``mcap`` and
 :func:`agent.wire.from_json`, fed once through a :class:`~dashboards.state.ReplayModel`, and shown with a
@@ -21,6 +23,7 @@ import queue
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -153,6 +156,46 @@ def replay_model_from_file(path: str | Path, trail_len: int = 200) -> ReplayMode
 # ============================================================================ the Viser UI
 
 @dataclass
+class _ClientView:
+    """The camera of one browser tab, as far as following the flock goes."""
+
+    look_at: np.ndarray | None = None           #: the look-at point last commanded (None: never yet)
+    distance: float = 0.0                       #: the camera distance last commanded
+    direction: np.ndarray = field(default_factory=lambda: plots.VIEW_DIRECTION.copy())
+    fit_now: bool = True                        #: jump (not glide) to the framing at the next update
+    zooming: bool = False
+    #: (command number, point) of the camera positions / look-at points this process commanded, newest
+    #: last, and those the page starts from (number 0). The page echoes them back, late at times and in any
+    #: combination: a command is two messages (position, then look-at), Viser's send buffer replaces an
+    #: unsent message by the next one of its kind (so a look-at may overtake a position), and the page's
+    #: camera applies each alone (a position keeps the look-at, a look-at keeps the position). Whatever the
+    #: user does moves the position, the look-at or both to a point that is in neither list.
+    sent_pos: deque = field(default_factory=lambda: deque(maxlen=200))
+    sent_look: deque = field(default_factory=lambda: deque(maxlen=400))
+    seq: int = 0                                #: number of the last command
+    sent_t: float = 0.0                         #: when it was sent (monotonic)
+    #: the page's last report is an older pose than the last command: it was stale, or the page put its
+    #: camera back (its initial-camera setup runs after the first frames) — send the command again
+    resend: bool = False
+
+    def remember(self, seq: int, pos=None, look=None) -> None:
+        if pos is not None:
+            self.sent_pos.append((seq, np.array(pos, float)))
+        if look is not None:
+            self.sent_look.append((seq, np.array(look, float)))
+
+    def ours(self, pos: np.ndarray, look: np.ndarray, tol: float) -> int | None:
+        """The oldest command number a reported pose is made of (None: the user made it)."""
+        seqs = []
+        for sent, x in ((self.sent_pos, pos), (self.sent_look, look)):
+            seq = next((k for k, y in reversed(sent) if np.linalg.norm(x - y) < tol), None)
+            if seq is None:
+                return None
+            seqs.append(seq)
+        return min(seqs)
+
+
+@dataclass
 class UiTimings:
     scene_updates: int = 0
     plot_updates: int = 0
@@ -184,8 +227,16 @@ class DashboardUI:
         self.replay_k = replay.first if replay else 0
         self.playing = False
         self.controls_sent: list[tuple[str, dict]] = []
+        # the camera: per browser tab, framed on the flock and gliding after it while "Follow" is on
+        self.follow = True
+        self._views: dict[int, _ClientView] = {}
+        self._framing: plots.Framing | None = None
+        self._cam_lock = threading.RLock()
+        self._view_t = time.monotonic()
         self._build_scene()
         self._build_gui()
+        self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(lambda client: self._views.pop(client.client_id, None))
 
     # ------------------------------------------------------------------ scene
     def _build_scene(self) -> None:
@@ -196,7 +247,8 @@ class DashboardUI:
         s.configure_default_lights(True, cast_shadow=False)
         r = self.info.link_range if math.isfinite(self.info.link_range) else 10.0
         self.extent = max(2.5 * r, 25.0)
-        self.server.initial_camera.position = (0.0, -1.1 * self.extent, 0.9 * self.extent)
+        # until the first tick frames the flock (see update_view)
+        self.server.initial_camera.position = tuple(-1.4 * self.extent * plots.VIEW_DIRECTION)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self.world = s.add_frame("/world", show_axes=False)
         cell = 10 ** math.floor(math.log10(max(r, 1.0)))
@@ -299,9 +351,8 @@ class DashboardUI:
             plots.auto_error_scale(err_rows if err_rows is not None else snap.errors)
         sa = plots.scene_arrays(snap, selected=self.selected, error_scale=scale, link_range=self.info.link_range,
                                 show_circles=self.g_circles.value, nsig=float(self.g_nsig.value))
-        centre = sa.centre if self.g_follow.value else np.zeros(3)
+        self._framing = plots.flock_framing(snap, min_radius=max(4 * self.marker_size, 2.0)) or self._framing
         with self.server.atomic():
-            self.world.position = tuple(-np.array([centre[0], centre[1], 0.0]))
             self._cloud(self.h_sensors, sa.sensor_points, sa.sensor_colors)
             self._cloud(self.h_est, sa.estimate_points, sa.estimate_colors, self.g_estimates.value)
             self._segments(self.h_links, sa.links, self.g_links.value)
@@ -331,9 +382,148 @@ class DashboardUI:
             else:
                 self.h_sel_est.visible = False
         self._render_inspect(snap)
+        self.update_view()
         self.timings.scene_updates += 1
         self.timings.scene_s += time.perf_counter() - t0
         return sa
+
+    # ------------------------------------------------------------------ camera
+    #: the glide's time constant (s): a moving flock is followed smoothly, a jump (replay seek) in ~1 s
+    FOLLOW_TAU = 0.35
+    #: zoom only when the flock's sphere stops fitting, or fills less than 1/ZOOM_SLACK of the view —
+    #: the flock's breathing does not make the camera breathe
+    ZOOM_SLACK = 1.6
+
+    def _on_connect(self, client) -> None:
+        """A new tab: it gets the framing at once (at the next update), and its camera reports are watched
+        for the user's own moves."""
+        view = _ClientView()
+        # the page reports its default pose first, then the server's initial camera (applied after its first
+        # frames, possibly after our first command): both are ours, not the user's
+        ic = self.server.initial_camera
+        view.remember(0, ic.position, ic.look_at)
+        try:
+            view.remember(0, client.camera.position, client.camera.look_at)
+        except AssertionError:  # no camera report yet
+            pass
+        with self._cam_lock:
+            self._views[client.client_id] = view
+        client.camera.on_update(lambda cam, cid=client.client_id: self._on_camera(cid, cam))
+        self.update_view(force=True)
+
+    def _on_camera(self, cid: int, cam) -> None:
+        """A camera report from a tab (Viser's thread pool). A pose this process did not command means the
+        user moved the camera (drag, wheel, keys): stop following, so as not to fight them."""
+        with self._cam_lock:
+            view = self._views.get(cid)
+            if view is None or view.look_at is None or not self.follow:
+                return
+            P, L = np.asarray(cam.position, float), np.asarray(cam.look_at, float)
+            tol = 1e-3 * max(view.distance, 1.0)
+            seq = view.ours(P, L, tol)
+            if seq is not None:
+                view.resend = seq < view.seq
+                return
+        log.info("camera moved by the user in tab %s: no longer following the flock", cid)
+        self.follow = False
+        self.g_follow.value = False
+
+    def _set_follow(self, on: bool) -> None:
+        """The "Follow the flock" checkbox. Turned on, every tab glides from where its camera is now,
+        keeping its viewing direction (the user's orbit), to the flock."""
+        with self._cam_lock:
+            if on and not self.follow:
+                for cid, client in self.server.get_clients().items():
+                    view = self._views.get(cid)
+                    if view is None:
+                        continue
+                    try:
+                        P, L = np.array(client.camera.position, float), np.array(client.camera.look_at, float)
+                    except AssertionError:
+                        continue
+                    dist = float(np.linalg.norm(L - P))
+                    if dist > 1e-9:
+                        view.look_at, view.distance, view.direction = L, dist, (L - P) / dist
+                        view.seq += 1
+                        view.remember(view.seq, P, L)
+            self.follow = bool(on)
+        self.update_view(force=True)
+
+    def reset_view(self) -> None:
+        """The "Reset view" button: every tab framed on the flock at once, from the default direction, and
+        following it again."""
+        with self._cam_lock:
+            for view in self._views.values():
+                view.fit_now = True
+                view.direction = plots.VIEW_DIRECTION.copy()
+            self.follow = True
+        if not self.g_follow.value:
+            self.g_follow.value = True
+        self.update_view(force=True)
+
+    def update_view(self, force: bool = False) -> None:
+        """Move each following tab's camera toward the framing of the last drawn tick: look at the flock's
+        centre from a distance that fits the flock and the target in the tab's view (its own field of view
+        and aspect ratio), gliding with time constant ``FOLLOW_TAU``. The control panel is docked at the
+        right edge and the plots at the left, so the canvas is exactly the visible part of the scene: the
+        flock centred in the canvas is centred in what the user sees. Called after each scene redraw and
+        from the loops (at most 20 times a second); it sends nothing once the camera is where it should be."""
+        now = time.monotonic()
+        if not force and now - self._view_t < 0.05:
+            return
+        fr = self._framing
+        if fr is None:
+            return
+        with self._cam_lock:
+            a = 1.0 - math.exp(-min(max(now - self._view_t, 0.0), 0.25) / self.FOLLOW_TAU)
+            self._view_t = now
+            clients = self.server.get_clients()
+            for cid, view in list(self._views.items()):
+                client = clients.get(cid)
+                if client is None or not (self.follow or view.fit_now):
+                    continue
+                try:
+                    fov, aspect = float(client.camera.fov), float(client.camera.aspect)
+                except (AssertionError, ZeroDivisionError):
+                    continue                  # the tab has not reported its camera yet
+                d_fit = plots.camera_distance(fr.radius, fov, aspect)
+                if view.fit_now or view.look_at is None:
+                    L, d = np.array(fr.centre, float), 1.1 * d_fit
+                else:
+                    L = view.look_at + a * (fr.centre - view.look_at)
+                    d = view.distance
+                    if not d_fit <= d <= self.ZOOM_SLACK * d_fit:
+                        view.zooming = True
+                    if view.zooming:
+                        d += a * (1.1 * d_fit - d)
+                        view.zooming = abs(d / (1.1 * d_fit) - 1.0) > 0.02
+                    step = float(np.linalg.norm(L - view.look_at)) + abs(d - view.distance)
+                    if step < 2e-3 * d and not (view.resend and now - view.sent_t > 0.5):
+                        continue
+                self._command(client, view, L, d)
+
+    def _command(self, client, view: _ClientView, L: np.ndarray, d: float) -> None:
+        cam = client.camera
+        P = L - view.direction * d
+        prev_P, prev_L = np.array(cam.position, float), np.array(cam.look_at, float)
+        view.seq += 1
+        # Viser's position setter also sends the look-at moved along (it keeps the orientation): the tab
+        # may report that one too (we hold _cam_lock: its reports are looked at after this is recorded)
+        view.remember(view.seq, P, prev_L + (P - prev_P))
+        refit = view.fit_now
+        view.look_at, view.distance, view.fit_now = L, d, False
+        view.sent_t, view.resend = time.monotonic(), False
+        with client.atomic():
+            if 3 * d > cam.far:
+                cam.far = 10 * d
+            if 2 * d > cam.max_orbit_distance:
+                cam.max_orbit_distance = 4 * d
+            cam.position = P
+            view.remember(view.seq, None, cam.look_at)   # what the setter sent (a report may have come between)
+            view.remember(view.seq, None, L)
+            cam.look_at = L
+            if refit:
+                cam.up_direction = (0.0, 0.0, 1.0)
 
     # ------------------------------------------------------------------ plots and text
     def render_plots(self, series: dict[str, np.ndarray], force: bool = False) -> None:
@@ -345,8 +535,10 @@ class DashboardUI:
         t0 = time.perf_counter()
         self._last_plot_k = last_k
         ser = plots.decimate(series, self.max_plot_points)
-        specs = plots.uplot_panels(ser, self.info.n, self.selected,
-                                   has_lower=self.info.tmsee_lower is not None)
+        fe = series.get("fusion_err")
+        self._has_fusion = self._has_fusion or bool(fe is not None and np.isfinite(fe).any())
+        specs = plots.uplot_panels(ser, self.info.n, self.selected, has_lower=self.info.tmsee_lower is not None,
+                                   has_fusion=self._has_fusion)
         with self.server.atomic():
             for spec in specs:
                 h = self.h_plots.get(spec.key)
@@ -431,7 +623,12 @@ class DashboardUI:
         gui = self.server.gui
         gui.configure_theme(control_width="large", show_share_button=False, show_logo=False,
                             brand_color=(40, 90, 160))
+        # docked, not floating over the scene: the canvas is then exactly the part of the scene the user
+        # sees, and a camera centred on the flock shows it clear of the panel (a floating panel hid the
+        # flock, which sits in the canvas's middle, behind it)
+        gui.main_panel.dock_right()
         self.max_plot_points = 1500
+        self._has_fusion = False          # once a fusion line is drawn it stays (the panel keeps its lines)
         self.h_plots: dict = {}
         self._plot_order = {k: 100 + i for i, k in enumerate(["errors", "tmsee", "disagreement", "lambda2", "rates"])}
         self.g_status = gui.add_markdown("waiting for the first tick …")
@@ -485,6 +682,13 @@ class DashboardUI:
                     elif v == "Last" and self.replay:
                         self.playing = False
                         self.g_slider.value = self.replay.last
+
+        with gui.add_folder("View"):
+            self.g_follow = gui.add_checkbox("Follow the flock", True,
+                                             hint="keep the camera on the flock (moving the camera stops it)")
+            b_reset = gui.add_button("Reset view", hint="frame the flock and the target, and follow them again")
+            self.g_follow.on_update(lambda _e: self._set_follow(bool(self.g_follow.value)))
+            b_reset.on_click(lambda _e: self.reset_view())
 
         with gui.add_folder("Inspect"):
             self.g_node = gui.add_dropdown("Sensor", ids, initial_value=ids[0])
@@ -569,9 +773,8 @@ class DashboardUI:
             self.g_circles = gui.add_checkbox("Range circles", n <= 40)
             self.g_estimates = gui.add_checkbox("Node estimates", True)
             self.g_trail = gui.add_checkbox("Target trail", True)
-            self.g_follow = gui.add_checkbox("Follow the target", True)
             self.g_err_scale = gui.add_number("Error colour scale (0 = auto)", 0.0, min=0.0, step=0.1)
-            for h in (self.g_links, self.g_circles, self.g_estimates, self.g_trail, self.g_follow, self.g_err_scale):
+            for h in (self.g_links, self.g_circles, self.g_estimates, self.g_trail, self.g_err_scale):
                 h.on_update(lambda _e: setattr(self, "dirty", True))
             gui.add_markdown("colour: own error, green (low) → red (≥ scale); grey = dead  \n"
                              "● sensor  ◆ its estimate  red ball = target (trail)  purple = fusion  \n"
@@ -676,6 +879,8 @@ class LiveDashboard:
             # at most one redraw per scene_period, and only when there is a new tick (or a GUI change)
             self._next_scene = now + self.scene_period
             self.ui.render_scene(st.snapshot(), st.series(last=200)["err"])
+        else:
+            self.ui.update_view()     # the camera's glide goes on between ticks (and while paused)
         if now >= self._next_plot:
             self._next_plot = now + self.plot_period
             self.ui.render_plots(st.series(last=self.ui.max_plot_points * 4))
@@ -713,6 +918,9 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
                 if time.monotonic() > end_at:
                     break
     finally:
+        log.info("dashboard model: %d ticks scored, %d leading partial ticks skipped, %d ticks never heard of, "
+                 "%d late messages, %d missing estimates/states, %d invalid messages", len(state.series_buf),
+                 state.partial_start, state.gap_ticks, state.late, state.missing_total, state.bus_dropped)
         bus.close()
         ui.stop()
     return 0
@@ -753,7 +961,8 @@ def run_replay(path: str | Path, port: int, *, host: str = "127.0.0.1",
                 acc = 0.0
             last = now
             k = ui.replay_k
-            ui.render_scene(model.snapshot(k), model.series(k, last=200)["err"])
+            if ui.render_scene(model.snapshot(k), model.series(k, last=200)["err"]) is None:
+                ui.update_view()
             if now - last_plot > (0.3 if ui.playing else 0.1):
                 last_plot = now
                 ui.render_plots(model.series(k))

@@ -136,7 +136,6 @@ class SceneArrays:
     selected_est: np.ndarray | None = None
     selected_links: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.float32))
     ellipse: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.float32))
-    centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 def scene_arrays(snap: Snapshot, *, selected: int | None = None, error_scale: float = 1.0,
@@ -151,16 +150,10 @@ def scene_arrays(snap: Snapshot, *, selected: int | None = None, error_scale: fl
     est_cols = (colors[est_ok].astype(float) * 0.55 + 255 * 0.45).astype(np.uint8)  # paler than the sensor
     circles = circle_segments(pos[known & snap.alive], link_range, circle_segments_n) if show_circles \
         else np.zeros((0, 2, 3), np.float32)
-    if snap.truth_pos is not None:
-        centre = snap.truth_pos.copy()
-    elif known.any():
-        centre = pos[known].mean(axis=0)
-    else:
-        centre = np.zeros(3)
     out = SceneArrays(sensor_points=pos[known].astype(np.float32), sensor_colors=colors[known], sensor_ids=ids,
                       estimate_points=snap.est_pos[est_ok].astype(np.float32), estimate_colors=est_cols,
                       links=link_segments(pos, snap.edges), circles=circles, trail=polyline_segments(snap.trail),
-                      target=snap.truth_pos, fusion=snap.fusion_pos, centre=centre)
+                      target=snap.truth_pos, fusion=snap.fusion_pos)
     if selected is not None and 0 <= selected < snap.n:
         out.selected = selected
         if known[selected]:
@@ -178,6 +171,44 @@ def scene_arrays(snap: Snapshot, *, selected: int | None = None, error_scale: fl
             mean[:min(3, d)] = xn[:min(3, d)]
             out.ellipse = polyline_segments(ellipse_points(mean, P, nsig))
     return out
+
+
+# --------------------------------------------------------------------------- camera framing
+
+#: the default viewing direction (from the camera to the point it looks at): from the south, 55° below the
+#: horizon — steep enough that a planar flock is seen as a flock, not as a row
+VIEW_DIRECTION = np.array([0.0, math.cos(math.radians(55.0)), -math.sin(math.radians(55.0))])
+
+
+@dataclass
+class Framing:
+    """What the camera keeps in view: a sphere around the flock and the target."""
+
+    centre: np.ndarray     #: (3,) the point to look at
+    radius: float
+
+
+def flock_framing(snap: Snapshot, min_radius: float = 1.0) -> Framing | None:
+    """The sphere around every sensor with a known position and the target (None: nothing known yet).
+    Centred on the middle of their bounding box — the flock's centre, however the sensors crowd —
+    with a radius of at least ``min_radius`` (one sensor alone still gets some surroundings)."""
+    pts = [snap.positions[np.all(np.isfinite(snap.positions), axis=1)]]
+    if snap.truth_pos is not None and np.all(np.isfinite(snap.truth_pos)):
+        pts.append(np.asarray(snap.truth_pos, float)[None])
+    p = np.concatenate(pts)
+    if not len(p):
+        return None
+    centre = 0.5 * (p.min(axis=0) + p.max(axis=0))
+    radius = float(np.max(np.linalg.norm(p - centre[None], axis=1)))
+    return Framing(centre=centre, radius=max(radius, float(min_radius)))
+
+
+def camera_distance(radius: float, fov: float, aspect: float, margin: float = 1.15) -> float:
+    """How far from the centre a perspective camera with vertical field of view ``fov`` (radians) and
+    width/height ``aspect`` must stand for a sphere of ``radius`` (× ``margin``) to fit in its view."""
+    half_v = 0.5 * float(fov)
+    half_h = math.atan(math.tan(half_v) * max(float(aspect), 1e-3))
+    return margin * float(radius) / math.sin(max(min(half_v, half_h), 1e-3))
 
 
 # --------------------------------------------------------------------------- uPlot panels
@@ -224,10 +255,69 @@ def _axes(ylabel: str, right: str | None = None) -> tuple[dict, ...]:
     return tuple(ax)
 
 
+#: x offset of the anchor row :func:`drawable` may put before the first row, in units of the x spacing
+ANCHOR_DX = 1e-3
+
+
+def drawable(data, series) -> tuple[np.ndarray, ...]:
+    """The columns of one uPlot panel made safe to draw: float arrays of equal length, x finite and
+    strictly increasing, no ±inf, and every y column finite in its first row.
+
+    Why: Viser ships uPlot data as Float64Array, so a gap can only travel as NaN (there is no null in a
+    typed array), and uPlot (1.6, as bundled by Viser 1.1.1) treats NaN as a *value*: its y-range search
+    starts from the first non-null point of each series, so a NaN there makes the scale's min and max NaN —
+    and every series on that scale, the axis ticks included, disappears; ±inf anywhere does the same. A NaN
+    in the middle is fine (a gap). The live dashboard hit it whenever the first row it plots lacks a value:
+    it joined the run during a tick, a tick had no estimate at all, a sensor was dead or silent, a panel's
+    optional line (the TMSEE lower bound, a node's error) had no value in the window. Measured with
+    Chromium on Viser's own uPlot: NaN first → scale NaN, no ticks, no lines; NaN inside → drawn;
+    +inf inside → scale NaN.
+
+    So: ±inf becomes NaN; rows with a non-finite or non-increasing x are dropped; and when some column
+    is not finite in row 0, one *anchor* row is put before it, ``ANCHOR_DX`` of a tick to the left, holding
+    for each column its own first finite value (else the first finite value of another column on the
+    same scale, else 0). The anchor changes neither a y range that has data nor a visible line: next to a
+    gap it is a lone point (points are not drawn), next to a value it is a level stub 1/1000 of a tick long
+    (hovering the panel's left edge shows its values). A
+    column with no value at all thus still leaves the panel's other lines drawn. (A user's x zoom
+    that starts exactly on a gap still blanks that panel until the zoom is reset with a double click.)"""
+    cols = [np.asarray(a, float).reshape(-1) for a in data]
+    x, ys = cols[0], cols[1:]
+    if any(len(y) != len(x) for y in ys):
+        raise ValueError(f"columns of unequal length {[len(c) for c in cols]}")
+    ok = np.isfinite(x)
+    if len(x):
+        prev = np.maximum.accumulate(np.where(ok, x, -np.inf))
+        ok[1:] &= x[1:] > prev[:-1]
+    x = x[ok]
+    ys = [np.where(np.isfinite(y[ok]), y[ok], np.nan) for y in ys]
+    if not len(x) or all(np.isfinite(y[0]) for y in ys):
+        return (x, *ys)
+    scales = [str(s.get("scale", "y")) if isinstance(s, dict) else "y" for s in series[1:len(cols)]]
+    scales += ["y"] * (len(ys) - len(scales))
+
+    def first(y: np.ndarray) -> float | None:
+        i = np.flatnonzero(np.isfinite(y))
+        return float(y[i[0]]) if i.size else None
+
+    own = [first(y) for y in ys]
+    anchor = []
+    for j, v in enumerate(own):
+        if v is None:
+            v = next((w for w, sc in zip(own, scales) if w is not None and sc == scales[j]), None)
+        anchor.append(0.0 if v is None else v)
+    dx = ANCHOR_DX * (float(x[1] - x[0]) if len(x) > 1 else 1.0)
+    return (np.r_[x[0] - dx, x], *(np.r_[a, y] for a, y in zip(anchor, ys)))
+
+
 def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = None,
-                 max_node_series: int = 10, has_lower: bool | None = None) -> list[PanelSpec]:
+                 max_node_series: int = 10, has_lower: bool | None = None,
+                 has_fusion: bool | None = None) -> list[PanelSpec]:
     """The live plot panels. Per-node errors are drawn one line per node up to ``max_node_series``
-    nodes; above that as the median and maximum over nodes plus the selected node."""
+    nodes; above that as the median and maximum over nodes plus the selected node. Each panel's data
+    went through :func:`drawable`. ``has_lower`` / ``has_fusion``: whether the TMSEE lower bound / the
+    fusion error have a line (None: whether the series hold a value of it) — the live UI fixes them so
+    that a panel's set of lines does not change as the window slides."""
     k = np.asarray(series["k"], float)
     err = np.asarray(series["err"], float).reshape(len(k), -1)
     panels: list[PanelSpec] = []
@@ -273,7 +363,9 @@ def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = N
     data = [k, series["disagreement"], series["mean_err"]]
     sers = [_x_series(), _line("disagreement", "#9467bd", 1.8), _line("‖x̄−x‖", "#8c564b", 1.2)]
     fe = series.get("fusion_err")
-    if fe is not None and np.isfinite(fe).any():
+    if has_fusion is None:
+        has_fusion = bool(fe is not None and np.isfinite(fe).any())
+    if has_fusion and fe is not None:
         data.append(fe)
         sers.append(_line("fusion", "#e377c2", 1.2))
     panels.append(PanelSpec("disagreement", "Consensus disagreement √mean‖x̂ᵢ−x̄‖²", tuple(data), tuple(sers),
@@ -292,6 +384,8 @@ def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = N
                             (_x_series(), _line("msg/s", "#1f77b4", 1.5), _line("dropped/s", "#d62728", 1.5,
                                                                                    scale="drop")),
                             {**_X_SCALE, "drop": {"auto": True}}, _axes("msg/s", right="drop")))
+    for p in panels:
+        p.data = drawable(p.data, p.series)
     return panels
 
 

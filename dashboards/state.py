@@ -10,7 +10,22 @@ Per tick k a :class:`Frame` collects the world's ``tick`` (links, alive flags, p
 the tick), the ``truth``, every node's ``estimate`` and ``state`` and the ``fusion/estimate``. A frame is
 *finalized* — scored and appended to the series, in tick order — as soon as it holds the tick, the truth
 and an estimate and a state from every alive sensor, or when the world is ``lag`` ticks further (what is
-still missing then counts as dropped), or at ``world/end``. Per finalized tick the series hold
+still missing then counts as dropped), or at ``world/end``. What a live subscriber really receives is not
+that tidy, and the series must stay plottable whatever comes (a browser's uPlot panel shows nothing at all
+once its data is malformed):
+
+* the dashboard usually joins a run that is already going (it starts its web server before it
+  subscribes), so its first frame may lack the world's tick and the truth that went by before it listened;
+  such a *leading partial frame* is not scored (counted in ``partial_start``) — scoring it made a first row
+  of NaN (and a burst of "missing" messages that nobody dropped);
+* a tick nothing at all arrived about (a starved machine, a dashboard that fell behind) becomes one gap
+  row (NaN, counted as missing), so that the plots break the line there instead of joining across it;
+* a message about a tick already finalized is late (counted in ``late``), a duplicated one overwrites;
+  rows are appended with k strictly increasing, whatever the arrival order;
+* a metric that is not finite (an overflowing TMSEE, a NaN in a message that was not validated) is
+  recorded as NaN — a gap — never as ±inf.
+
+Per finalized tick the series hold
 
 * eᵢ(k) = ‖x̂ᵢ,ₖ − xₖ‖ over the position components and the network RMSE √(mean eᵢ²);
 * TMSEE(k) = Σᵢ ‖x̂ᵢ,ₖ − xₖ‖² (full state) and its lower bound where the pre-run design has one;
@@ -257,7 +272,11 @@ class SeriesBuffer:
     def __len__(self) -> int:
         return self._len
 
-    def append(self, row: dict, err: np.ndarray) -> None:
+    def append(self, row: dict, err: np.ndarray) -> bool:
+        """Append one row; a row whose k is not above the last one is refused (False): the plots need x
+        strictly increasing, and :meth:`arrays` seeks by k."""
+        if self._len and not row["k"] > self._cols["k"][self._len - 1]:
+            return False
         if self.max_rows is not None and self._len >= 2 * self.max_rows:  # drop the older half, amortised O(1)
             keep = self.max_rows
             for c in self.columns:
@@ -275,6 +294,7 @@ class SeriesBuffer:
             self._cols[c][i] = NAN if v is None else v
         self._err[i] = err
         self._len += 1
+        return True
 
     def arrays(self, upto_k: int | None = None, last: int | None = None) -> dict[str, np.ndarray]:
         """Copies of the columns (``err``: rows × n), rows with k ≤ ``upto_k``, the last ``last`` of them
@@ -325,7 +345,10 @@ class DashboardState:
         self.messages = 0
         self.bus_dropped = 0
         self.missing_total = 0
-        self.late = 0
+        self.late = 0                            # messages about a tick already finalized
+        self.partial_start = 0                   # leading frames whose start went by before we listened
+        self.gap_ticks = 0                       # ticks nothing at all arrived about
+        self._last_expected = self.n             # sensors expected in the last scored tick
         self.ended = False
         self.end_reason = ""
         self.paused = False
@@ -351,7 +374,12 @@ class DashboardState:
             self.bus_dropped = total
 
     def _frame(self, k: int) -> Frame | None:
+        """The frame of tick k to add a message to; None when tick k is already scored (the message is late:
+        counted, and the scored frame left as scored)."""
         f = self.frames.get(k)
+        if f is not None and f.done:
+            self.late += 1
+            return None
         if f is None:
             if self._next_final is not None and k < self._next_final:
                 self.late += 1
@@ -379,6 +407,8 @@ class DashboardState:
             if f is not None:
                 self.truth_pos[msg.k] = _pad3(msg.x[: self.d])
         elif isinstance(msg, Estimate):
+            if key.startswith("fusion/"):
+                self.has_fusion = True       # even when late: from now on a tick waits for its fusion estimate
             f = self._frame(msg.k)
             if f is None:
                 return
@@ -416,33 +446,61 @@ class DashboardState:
     def finalize_all(self, now: float | None = None) -> None:
         """Score every pending frame (end of run / end of a recording)."""
         now = self.last_now if now is None else now
-        for k in sorted(self.frames):
-            if not self.frames[k].done:
-                self._finalize(self.frames[k], now)
+        self._advance(now, force=True)
         if self._next_final is not None:
             self._next_final = max(self._next_final, self.newest_frame + 1)
         self._evict()
 
     # ------------------------------------------------------------------ finalizing
-    def _advance(self, now: float) -> None:
+    def _advance(self, now: float, force: bool = False) -> None:
+        """Finalize frames in tick order while the next one is complete or given up (``force``: all)."""
         self.last_now = now
         moved = False
         while self._next_final is not None and self._next_final <= self.newest_frame:
             k = self._next_final
             f = self.frames.get(k)
-            if f is None or f.done:
-                if f is None and max(self.latest_tick, self.newest_frame) < k + self.lag:
-                    break           # nothing heard of tick k yet: it may still come
+            world = max(self.latest_tick, self.newest_frame)
+            if f is not None and f.done:
                 self._next_final += 1
                 continue
-            if f.complete(self.n, self.has_fusion) or max(self.latest_tick, self.newest_frame) >= k + self.lag:
-                self._finalize(f, now)
+            if f is None:
+                if world < k + self.lag and not force:
+                    break           # nothing heard of tick k yet: it may still come
+                # nothing at all arrived about ticks k … nxt−1: one gap row (once something was scored), and
+                # on to the next tick we heard of — in one step, however long the gap
+                nxt = min((j for j in self.frames if j > k), default=self.newest_frame + 1)
+                if self.finalized_k >= 0:
+                    self._gap(k, nxt - k, now)
+                    moved = True
+                self._next_final = nxt
+                continue
+            if force or f.complete(self.n, self.has_fusion) or world >= k + self.lag:
+                if self.finalized_k < 0 and f.tick is None and self.latest_tick > k:
+                    self._discard(f)    # we joined during tick k: its world tick went by before we listened
+                else:
+                    self._finalize(f, now)
+                    moved = True
                 self._next_final += 1
-                moved = True
             else:
                 break
         if moved:
             self._evict()
+
+    def _discard(self, f: Frame) -> None:
+        self.partial_start += 1
+        self.frames.pop(f.k, None)
+        self.truth_pos.pop(f.k, None)
+
+    def _gap(self, k: int, count: int, now: float) -> None:
+        """One row of NaN at tick k standing for ``count`` ticks nothing arrived about (their estimates and
+        states count as missing, for the sensors the last scored tick expected)."""
+        missing = 2 * self._last_expected * count
+        self.gap_ticks += count
+        self.missing_total += missing
+        self.drop_meter.add(now, missing)
+        row = {"k": k, "t": NAN, "wall": now, "reporting": 0, "missing": missing,
+               "msg_rate": self.msg_meter.rate(now), "drop_rate": self.drop_meter.rate(now)}
+        self.series_buf.append(row, np.full(self.n, NAN))
 
     def _finalize(self, f: Frame, now: float) -> None:
         f.done = True
@@ -478,6 +536,7 @@ class DashboardState:
                 row["lambda2_alive"] = self._lambda2([[idx[j] for j in f.tick.links[i] if j in idx] for i in alive])
             row["links"] = sum(len(nb) for nb in f.tick.links) // 2
         exp = f.expected(n)
+        self._last_expected = len(exp)
         missing = sum((i not in f.est) + (i not in f.state_pos) for i in exp)
         row["missing"] = missing
         if missing:
@@ -485,7 +544,12 @@ class DashboardState:
             self.drop_meter.add(now, missing)
         row["msg_rate"] = self.msg_meter.rate(now)
         row["drop_rate"] = self.drop_meter.rate(now)
-        self.series_buf.append(row, err)
+        for c, v in row.items():            # a gap, never ±inf (nor a NaN from an unvalidated message)
+            if isinstance(v, float) and not math.isfinite(v) and c != "t":
+                row[c] = NAN
+        err[~np.isfinite(err)] = NAN
+        if not self.series_buf.append(row, err):
+            return
         self.rows[f.k] = row
         known = ~np.isnan(err)
         self._last_err[known] = err[known]

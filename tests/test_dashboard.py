@@ -271,6 +271,144 @@ def test_fusion_estimate_is_shown_and_scored():
     assert "fusion" in specs[2].labels
 
 
+def _assert_plottable(s: dict, n: int) -> None:
+    """What a uPlot panel needs to draw (see plots.drawable): per panel, columns of one length, x strictly
+    increasing, no ±inf, every line finite in its first row."""
+    assert np.all(np.diff(s["k"]) > 0)
+    for c, v in s.items():
+        assert not np.isinf(v).any(), c
+    for p in plots.uplot_panels(s, n):
+        assert len({len(a) for a in p.data}) == 1, p.key
+        assert np.all(np.diff(p.data[0]) > 0), p.key
+        for y, ser in zip(p.data[1:], p.series[1:]):
+            assert np.isfinite(y[0]) and not np.isinf(y).any(), (p.key, ser["label"], y[:3])
+
+
+def test_a_dashboard_joining_during_a_tick_scores_from_its_first_world_tick():
+    """The live dashboard starts its web server before it subscribes, so it joins a run that is going — in
+    the middle of a tick whose world tick and truth it never sees. That frame used to be scored: a first row
+    of NaN (which blanked four uPlot panels for the whole run, tests/test_dashboard_browser.py) and every
+    sensor's estimate and state counted as dropped. Now it is left out."""
+    n = 6
+    ticks = synth(n, 8)
+    ticks[0] = [(key, m) for key, m in ticks[0] if key not in ("world/tick", "target/truth")]
+    st = DashboardState(RunInfo(n=n))
+    feed(st, ticks)
+    s = st.series()
+    assert s["k"].tolist() == list(range(1, 8)) and st.partial_start == 1
+    assert st.missing_total == 0 and np.all(s["missing"] == 0)
+    for c in ("rmse", "tmsee", "disagreement", "mean_err", "lambda2", "links"):
+        assert np.isfinite(s[c]).all(), c
+    _assert_plottable(s, n)
+    # a run without any world (no tick at all) is still scored as before: nothing to tell a late join by
+    nw = DashboardState(RunInfo(n=n))
+    feed(nw, [[(key, m) for key, m in t if key != "world/tick"] for t in synth(n, 5)])
+    nw.finalize_all()
+    assert nw.series()["k"].tolist() == [0, 1, 2, 3, 4] and nw.partial_start == 0
+
+
+def test_a_starved_stream_keeps_every_series_plottable():
+    """Gaps, NaN, restarts, late and out-of-order data — what a starved machine delivers — give series the
+    plots can draw, with the gaps where the data is missing."""
+    n = 5
+    ticks = []
+    for k in range(60):
+        alive = [not (i == 3 and 20 <= k < 30) for i in range(n)]          # sensor 3 dies and comes back
+        t = synthetic_tick(n, k, alive=alive)
+        if 5 <= k < 8:                                                     # no estimate from any sensor
+            t = [(key, m) for key, m in t if not key.endswith(("/estimate", "/state"))]
+        if k in (12, 13, 14):                                              # nothing at all about the tick
+            t = []
+        ticks.append(t)
+    late_est = {k: [km for km in ticks[k] if km[0].endswith("/estimate")] for k in range(40, 45)}
+    for k, est in late_est.items():                                        # estimates after the next tick
+        ticks[k] = [km for km in ticks[k] if km not in est]
+        ticks[k + 1] = ticks[k + 1][:1] + est + ticks[k + 1][1:]
+    ticks[50] += [km for km in synthetic_tick(n, 46) if km[0] == "agent/0/estimate"]   # late
+    ticks[52] = ticks[52][:1] + ticks[52]                                  # world tick twice
+    st = DashboardState(RunInfo(n=n))
+    feed(st, ticks)
+    st.ingest("world/end", End(k=60), 6.0)
+    s = st.series()
+    _assert_plottable(s, n)
+    k = s["k"].astype(int).tolist()
+    assert k == [j for j in range(60) if j not in (13, 14)]               # one gap row for 12–14
+    row = {kk: i for i, kk in enumerate(k)}
+    assert np.isnan(s["rmse"][row[12]]) and np.isnan(s["lambda2"][row[12]]) and s["missing"][row[12]] == 2 * n * 3
+    assert st.gap_ticks == 3
+    assert all(np.isnan(s["rmse"][row[j]]) and s["missing"][row[j]] == 2 * n for j in (5, 6, 7))
+    assert np.isfinite(s["rmse"][row[8]]) and np.isfinite(s["lambda2"][row[5]])
+    assert np.isnan(s["err"][row[25], 3]) and np.isfinite(s["err"][row[35], 3])  # dead, then back
+    assert all(s["missing"][row[j]] == 0 for j in range(40, 46))           # reordered, not lost
+    assert st.late >= 1 and st.ended
+
+
+def test_non_finite_metrics_are_gaps_not_infinities():
+    """An estimate far enough off overflows the TMSEE to inf, and a message that bypassed validation may
+    hold NaN: the series get NaN (a gap), never ±inf — which uPlot cannot draw at all."""
+    n = 3
+    ticks = synth(n, 4)
+    for j, (key, m) in enumerate(ticks[1]):
+        if key == "agent/0/estimate":
+            ticks[1][j] = (key, Estimate(src=0, k=1, x=m.x + 1e200, x_next=m.x, name="Synthetic"))
+        if key == "agent/1/estimate":
+            ticks[2][j] = (key, Estimate(src=1, k=2, x=m.x * np.nan, x_next=m.x, name="Synthetic"))
+    st = DashboardState(RunInfo(n=n))
+    with np.errstate(all="ignore"):
+        feed(st, ticks)
+        st.finalize_all()
+    s = st.series()
+    assert np.isnan(s["tmsee"][1]) and np.isnan(s["rmse"][1]) and np.isnan(s["err"][1, 0])  # ‖·‖ overflowed
+    assert np.isfinite(s["err"][1, 1:]).all() and np.isfinite(s["disagreement"][0])
+    assert np.isnan(s["rmse"][2]) and np.isnan(s["err"][2, 1])
+    assert np.isfinite(s["rmse"][[0, 3]]).all()
+    _assert_plottable(s, n)
+
+
+def test_drawable_gives_uplot_a_finite_start_and_no_infinities():
+    """plots.drawable: a column that is not finite in the first row gets an anchor row just before it,
+    with its own first value (no range change, no visible line); a column without any value borrows one
+    from its scale; ±inf → NaN; rows whose x is not strictly increasing go."""
+    series = ({"label": "k"}, {"label": "a"}, {"label": "b"}, {"label": "c", "scale": "links"})
+    x = np.array([3.0, 4.0, 4.0, 5.0, 6.0])
+    a = np.array([np.nan, 2.0, 9.0, np.inf, 3.0])
+    b = np.full(5, np.nan)
+    c = np.array([np.nan, np.nan, 0.0, 7.0, 8.0])
+    X, A, B, C = plots.drawable((x, a, b, c), series)
+    np.testing.assert_array_equal(X, [3 - plots.ANCHOR_DX, 3, 4, 5, 6])
+    np.testing.assert_array_equal(A, [2.0, np.nan, 2.0, np.nan, 3.0])
+    np.testing.assert_array_equal(B, [2.0, np.nan, np.nan, np.nan, np.nan])    # a's value: same scale "y"
+    np.testing.assert_array_equal(C, [7.0, np.nan, np.nan, 7.0, 8.0])          # its own first value
+    clean = (np.arange(4.0), np.ones(4))
+    assert all(np.array_equal(u, v) for u, v in zip(plots.drawable(clean, series[:2]), clean))
+    with pytest.raises(ValueError):
+        plots.drawable((np.arange(3.0), np.ones(2)), series[:2])
+
+
+def test_camera_framing_fits_the_flock():
+    """The 3-D view's framing: the centre of the flock and target's bounding box, a sphere around all of
+    them, and a camera distance at which that sphere fits the view's narrower angle."""
+    n = 12
+    st = DashboardState(RunInfo(n=n, link_range=12.0))
+    feed(st, synth(n, 3))
+    snap = st.snapshot()
+    fr = plots.flock_framing(snap, min_radius=1.0)
+    pts = np.vstack([snap.positions, snap.truth_pos[None]])
+    np.testing.assert_allclose(fr.centre, 0.5 * (pts.min(0) + pts.max(0)))
+    assert fr.radius == pytest.approx(np.linalg.norm(pts - fr.centre, axis=1).max())
+    fov = math.radians(75)
+    d_wide, d_tall = (plots.camera_distance(fr.radius, fov, a) for a in (1.6, 0.5))
+    assert d_wide == pytest.approx(1.15 * fr.radius / math.sin(fov / 2))          # the height limits
+    assert d_tall > d_wide                                                        # a narrow view stands back
+    half_h = math.atan(math.tan(fov / 2) * 0.5)
+    assert fr.radius * 1.15 / d_tall == pytest.approx(math.sin(half_h))
+    lone = plots.flock_framing(st.snapshot(), min_radius=1e3)
+    assert lone.radius == 1e3
+    snap.positions[:] = np.nan
+    snap.truth_pos = None
+    assert plots.flock_framing(snap) is None
+
+
 # ----------------------------------------------------------------------------- figures
 
 def test_scene_arrays_are_batched_for_a_hundred_sensors():
@@ -313,6 +451,30 @@ def test_uplot_panels_shapes():
         assert len(panels[0].series) == expect_err_series
     small = plots.decimate(s, 7)
     assert len(small["k"]) <= 7 and small["k"][-1] == s["k"][-1]
+
+
+def test_camera_reports_tell_the_users_moves_from_ours():
+    """The live UI stops following the flock when the user moves a tab's camera, and knows it only from the
+    poses the tab reports. Its own commands come back late and in pieces — a position alone (the look-at
+    kept), a look-at alone, an older look-at with a newer position — so a report is ours when its position
+    and its look-at are each one we sent; a user's orbit, pan or zoom moves at least one of them elsewhere."""
+    from dashboards.live import _ClientView
+
+    v = _ClientView()
+    v.remember(0, (0.0, -30.0, 40.0), (0.0, 0.0, 0.0))                  # the page's initial camera
+    for seq in (1, 2, 3):                                               # three commands gliding east
+        v.seq = seq
+        v.remember(seq, (seq, -30.0, 40.0), (seq - 1.0, 0.0, 0.0))      # position (+ the look-at moved along)
+        v.remember(seq, None, (float(seq), 0.0, 0.0))
+    tol = 1e-3 * 50
+    P = lambda *x: np.array(x, float)  # noqa: E731
+    assert v.ours(P(3, -30, 40), P(3, 0, 0), tol) == 3                  # the last command
+    assert v.ours(P(2, -30, 40), P(3, 0, 0), tol) == 2                  # its look-at overtook its position
+    assert v.ours(P(0, -30, 40), P(0, 0, 0), tol) == 0                  # the initial camera, applied late
+    assert v.ours(P(3, -30 + 1e-9, 40), P(3, 0, 0), tol) == 3           # float noise on the way back
+    assert v.ours(P(5, -28, 41), P(3, 0, 0), tol) is None               # an orbit: the position moved
+    assert v.ours(P(3, -25, 33), P(3, 0, 0), tol) is None               # a zoom toward the look-at
+    assert v.ours(P(4, -30, 40), P(4, 0, 0), tol) is None               # a pan: both moved
 
 
 # ----------------------------------------------------------------------------- the live loop and the UI

@@ -1,9 +1,14 @@
 """The live dashboard in a real browser (Debian's headless ``chromium`` driven by Playwright), during a
 real process-per-agent run over Zenoh of Gu & Hu's intelligent-target scenario.
 
-One run serves both tests (module fixture): while it goes, a browser thread opens the page, waits for
+One run serves the first tests (module fixture): while it goes, a browser thread opens the page, waits for
 the scene, takes screenshots, then clicks two fault buttons (drop the link 0–1, kill sensor 3). The tests
 check the pictures and the DOM, then the Control messages and their effects in the run's recording.
+
+The last tests feed a real dashboard process over a real router with a stream they write themselves — a
+run's messages, but with exactly the awkward parts wanted (a late join, starved and lost ticks, a dead
+sensor, reordered and late messages; a flock marching off) — and inspect the page's uPlot instances and
+its three.js camera.
 
 Needs ``/usr/bin/chromium`` and the playwright package (never ``playwright install``): tests/provision.py
 installs Debian's chromium when it can (root with apt-get), else the tests skip saying how to enable them
@@ -233,7 +238,9 @@ def test_page_shows_the_scene_and_the_uplot_panels(session):
     r = session["results"]
     assert r["overview_tick"] >= FIRST_SHOT_TICK
     st = canvas_stats(r["overview_png"], r["canvas_box"])
-    assert st["shape"][0] > 400 and st["shape"][1] > 600, st       # the 3-D view fills the page's middle
+    # the 3-D view fills the page's middle, between the plots (docked left) and the control panel (docked
+    # right, so that it hides none of the scene): 1280 − 464 − 384 px wide
+    assert st["shape"][0] > 400 and st["shape"][1] > 400, st
     assert st["std"] > 8.0, st                                      # not a blank (uniform) canvas
     assert st["colourful_fraction"] > 0.002, st                     # coloured sensors / links / target drawn
     assert st["distinct_colours"] > 30, st
@@ -337,3 +344,368 @@ def test_replay_page_time_slider(session, tmp_path):
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+# ----------------------------------------------------------------------------- a real dashboard on a stream we write
+
+DEMO = ROOT / "scenarios" / "demo.toml"   # the scenario of the main job (12 sensors, range 12)
+
+#: every uPlot panel of the page, from Viser's own testpoint (window.__viserTestpoints.uplots): its columns'
+#: lengths and finite points, whether x strictly increases, and each y scale's current min/max
+UPLOT_STATE = """() => Object.values(window.__viserTestpoints?.uplots || {}).map(({chart: u}) => {
+    const x = u.data[0]; let inc = true;
+    for (let i = 1; i < x.length; i++) if (!(x[i] > x[i - 1])) inc = false;
+    const series = u.series.slice(1).map((s, j) => {
+        let finite = 0; for (const v of u.data[j + 1]) if (Number.isFinite(v)) finite++;
+        return {label: s.label, scale: s.scale, len: u.data[j + 1].length, finite}; });
+    const scales = {}; for (const s of series) scales[s.scale] = [u.scales[s.scale].min, u.scales[s.scale].max];
+    return {title: u.root.querySelector('.u-title')?.textContent || '', rows: x.length, inc, series, scales};
+})"""
+
+
+def panels_drawn(state, min_points: int) -> list[str]:
+    """What keeps each uPlot panel from showing its lines ([] when all five do): a panel must have columns
+    of one length with x strictly increasing, at least one line with ``min_points`` finite points, and a
+    finite min < max on every y scale (a NaN scale is what draws axes without ticks and no line at all)."""
+    if not state or len(state) != 5:
+        return [f"{0 if not state else len(state)} uPlot panels in the page"]
+    bad = []
+    for p in state:
+        if not p["inc"] or any(s["len"] != p["rows"] for s in p["series"]):
+            bad.append(f"{p['title']}: x not increasing or columns of unequal length")
+        if max(s["finite"] for s in p["series"]) < min_points:
+            bad.append(f"{p['title']}: fewer than {min_points} finite points in every line {p['series']}")
+        for sc, (lo, hi) in p["scales"].items():
+            if lo is None or hi is None or not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+                bad.append(f"{p['title']}: scale {sc} = [{lo}, {hi}]")
+    return bad
+
+
+class LiveDashboardOn:
+    """A Zenoh router in this process, the live dashboard (``python -m dashboards --run …``, the command the
+    launcher spawns) connected to it, and our own client to publish what a run would — message by message,
+    so that a test can write exactly the awkward stream it wants (no run reproduces a starved machine on
+    demand). Entered once the dashboard is subscribed (its liveliness token is up) and serving."""
+
+    def __init__(self, run: str, scenario: Path = DEMO, log: Path | None = None):
+        self.run, self.scenario, self.log = run, scenario, log
+
+    def __enter__(self):
+        import subprocess
+        import sys
+
+        from agent.bus import ZenohBus
+        from flocktrack.launch import free_port, open_router
+
+        zport, self.port = free_port(), free_port()
+        self.router = open_router(zport)
+        self._out = open(self.log, "wb") if self.log else subprocess.DEVNULL
+        self.proc = subprocess.Popen([sys.executable, "-m", "dashboards", "--run", self.run, "--connect",
+                                      f"tcp/127.0.0.1:{zport}", "--port", str(self.port), "--scenario",
+                                      str(self.scenario)], cwd=str(ROOT), stdout=self._out, stderr=subprocess.STDOUT)
+        self.bus = ZenohBus(self.run, connect=f"tcp/127.0.0.1:{zport}")
+        members: set[str] = set()
+        self.bus.watch_members(lambda name, alive: members.add(name) if alive else members.discard(name))
+        end = time.monotonic() + 120      # it imports Viser and starts serving before it subscribes
+        while "dashboard/0" not in members and time.monotonic() < end and self.proc.poll() is None:
+            self.bus.poll(0.2)
+        assert "dashboard/0" in members, f"the dashboard never subscribed (exit code {self.proc.poll()})"
+        assert _wait_port(self.port, 60)
+        return self
+
+    def publish(self, msgs) -> None:
+        for key, m in msgs:
+            if m is not None:
+                self.bus.publish(key, m)
+
+    def __exit__(self, *exc):
+        self.bus.close()
+        self.proc.terminate()
+        try:
+            self.proc.wait(15)
+        except Exception:
+            self.proc.kill()
+        if self.log:
+            self._out.close()
+        self.router.close()
+
+
+def _starved_stream(n: int, ticks: int):
+    """What the dashboard of a starved run receives, tick by tick (a list of message lists):
+
+    * it joins during tick 0 — the world's tick and the truth went by before it listened;
+    * ticks 15–19 have no estimate (nor state) from any sensor: the machine was starved;
+    * nothing at all arrives about ticks 30 and 31;
+    * sensor 3 is dead for ticks 40–59 (the world says so), then comes back (restarted);
+    * ticks 70–79: each tick's estimates arrive after the world's next tick (out of order);
+    * tick 85: sensor 0's estimate comes again, late, after tick 90; tick 95's world tick comes twice.
+    """
+    from dashboards.state import synthetic_tick
+
+    out = []
+    for k in range(ticks):
+        alive = [not (i == 3 and 40 <= k < 60) for i in range(n)]
+        msgs = [km for km in synthetic_tick(n, k, alive=alive) if km[1] is not None]
+        if k == 0:
+            msgs = [(key, m) for key, m in msgs if key not in ("world/tick", "target/truth")]
+        if 15 <= k < 20:
+            msgs = [(key, m) for key, m in msgs if key.startswith(("world/", "target/"))]
+        if k in (30, 31):
+            msgs = []
+        if k == 95:
+            msgs = msgs[:1] + msgs
+        out.append(msgs)
+    late_est = {k: [km for km in out[k] if km[0].endswith("/estimate")] for k in range(70, 80)}
+    for k, est in late_est.items():     # tick k's estimates after the world's tick k+1
+        out[k] = [km for km in out[k] if km not in est]
+        out[k + 1] = out[k + 1][:1] + est + out[k + 1][1:]
+    out[90] += [km for km in synthetic_tick(n, 85) if km[0] == "agent/0/estimate"]
+    return out
+
+
+def test_live_plots_draw_through_a_starved_stream(tmp_path):
+    """The bug "the live plots stay blank during the main job": with ``flocktrack run scenarios/demo.toml
+    --dashboard`` four of the five panels showed axes without y ticks and without lines, all run long.
+    Cause: the dashboard joins a run already going, so the first tick it scores lacked the world's tick
+    and the truth — a first row of NaN — and Viser's uPlot takes a NaN in a line's first point for the
+    scale's min and max (NaN): that scale, its ticks and every line on it vanish (only msg/s, never NaN,
+    drew). A starved machine adds ticks without any estimate, dead and restarted sensors, ticks never
+    heard of, late and reordered messages. Here a real dashboard process gets such a stream over a real
+    router and a real Chromium must show every panel's lines, mid-run and after the end."""
+    _require_browser()
+    from agent.wire import End
+    from playwright.sync_api import sync_playwright
+
+    n, ticks = 12, 110
+    stream = _starved_stream(n, ticks)
+    with LiveDashboardOn("plotgaps", log=tmp_path / "dashboard.log") as dash, sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(f"http://127.0.0.1:{dash.port}/")
+        page.wait_for_function("() => /\\(world at -1\\)/.test(document.body.innerText)", timeout=60_000,
+                               polling=500)          # the page is live; nothing published yet
+        for k in range(65):
+            dash.publish(stream[k])
+            time.sleep(0.02)
+        # mid-run: through the starved ticks, the lost ones and the dead sensor
+        _wait_tick(page, 60, timeout_ms=60_000)
+        page.wait_for_function(f"() => ({UPLOT_STATE})().filter(p => p.rows >= 55).length == 5", timeout=60_000,
+                               polling=500)
+        mid = page.evaluate(UPLOT_STATE)
+        for k in range(65, ticks):
+            dash.publish(stream[k])
+            time.sleep(0.02)
+        dash.publish([("world/end", End(k=ticks))])
+        page.wait_for_function("() => /· ended/.test(document.body.innerText)", timeout=60_000, polling=500)
+        page.wait_for_function(f"() => ({UPLOT_STATE})().filter(p => p.rows >= {ticks - 8}).length == 5",
+                               timeout=60_000, polling=500)
+        page.wait_for_timeout(1000)      # a last plot update after the end
+        end = page.evaluate(UPLOT_STATE)
+        status = page.inner_text("body")
+        browser.close()
+    assert panels_drawn(mid, 40) == [], mid
+    assert panels_drawn(end, 80) == [], end
+    titles = " | ".join(p["title"] for p in end)
+    for word in ("Position error", "TMSEE", "disagreement", "connectivity", "Messages"):
+        assert word in titles, titles
+    # the lines do have their gaps: the starved ticks, the lost ticks, the dead sensor
+    rmse = next(p for p in end if "Position error" in p["title"])["series"][-1]
+    assert rmse["label"] == "RMSE" and rmse["finite"] < rmse["len"] - 5, rmse
+    assert f"tick {ticks - 1} (world at {ticks - 1})" in status, status
+    assert not errors, errors
+
+
+#: where the sensors land on the page: each point of the /world/sensors cloud projected through the page's
+#: own three.js camera (window.__viserMutable, Viser's E2E hook) to CSS pixels, and whether it is seen — in
+#: the 3-D canvas and not under a GUI panel (the control panel, the plots, a notification); plus the
+#: camera's look-at point (three.js world: y up)
+FLOCK_ON_PAGE = """() => {
+    const m = window.__viserMutable, cam = m?.camera, cloud = m?.nodeRefFromName['/world/sensors'];
+    if (!cam || !cloud || !cloud.visible) return null;
+    let pts = null; cloud.traverse(o => { if (o.isPoints && !pts) pts = o; });
+    if (!pts) return null;
+    pts.updateWorldMatrix(true, false); cam.updateMatrixWorld();
+    const a = pts.geometry.attributes.position, r = m.canvas.getBoundingClientRect(), out = [];
+    for (let i = 0; i < a.count; i++) {
+        const v = cam.position.clone().set(a.getX(i), a.getY(i), a.getZ(i));
+        pts.localToWorld(v); v.project(cam);
+        const x = r.left + (v.x + 1) / 2 * r.width, y = r.top + (1 - v.y) / 2 * r.height;
+        const inside = v.z < 1 && x >= r.left && x <= r.right && y >= r.top && y <= r.bottom;
+        const el = inside ? document.elementFromPoint(x, y) : null;
+        out.push({x, y, seen: !!el && !el.closest('.mantine-Paper-root, .mantine-Notifications-root')});
+    }
+    const t = cam.position.clone(); m.cameraControl.getTarget(t);
+    return {pts: out, canvas: {x: r.left, y: r.top, w: r.width, h: r.height}, target: [t.x, t.y, t.z]};
+}"""
+
+
+def framed(view, *, centre_tol: float = 0.2, min_span: float = 0.3) -> list[str]:
+    """Why the flock is not framed ([] when it is): every sensor seen, the middle of the sensors within
+    ``centre_tol`` of the canvas's middle, and the flock spanning at least ``min_span`` of the canvas's
+    width or height (framed, not a speck in the distance)."""
+    if not view:
+        return ["no sensors drawn"]
+    pts, c = view["pts"], view["canvas"]
+    xs, ys = [p["x"] for p in pts], [p["y"] for p in pts]
+    unseen = sum(not p["seen"] for p in pts)
+    why = [f"{unseen} of {len(pts)} sensors not seen"] if unseen else []
+    mx, my = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
+    if abs(mx - (c["x"] + c["w"] / 2)) > centre_tol * c["w"] or abs(my - (c["y"] + c["h"] / 2)) > centre_tol * c["h"]:
+        why.append(f"flock centre ({mx:.0f}, {my:.0f}) off the canvas centre {c}")
+    if max((max(xs) - min(xs)) / c["w"], (max(ys) - min(ys)) / c["h"]) < min_span:
+        why.append(f"flock spans only {max(xs) - min(xs):.0f}×{max(ys) - min(ys):.0f} px of {c}")
+    return why
+
+
+def _marching_flock(n: int, k: int, step: float = 3.0):
+    """Tick k of a flock that marches east ``step`` m per tick (synthetic_tick's flock, shifted): after
+    30 ticks it is 90 m — several of its own widths — further, out of any fixed view of it."""
+    import dataclasses
+
+    from agent.wire import Estimate, State, Tick, Truth
+    from dashboards.state import synthetic_tick
+
+    d = np.array([step * k, 0.0])
+    d4 = np.r_[d, 0.0, 0.0]
+    out = []
+    for key, m in synthetic_tick(n, k):
+        if isinstance(m, Tick):
+            m = dataclasses.replace(m, positions=m.positions + d)
+        elif isinstance(m, Truth):
+            m = dataclasses.replace(m, x=m.x + d4)
+        elif isinstance(m, Estimate):
+            m = dataclasses.replace(m, x=m.x + d4, x_next=m.x_next + d4)
+        elif isinstance(m, State):
+            m = dataclasses.replace(m, pos=m.pos + d)
+        if m is not None:
+            out.append((key, m))
+    return out
+
+
+def test_the_view_frames_and_follows_the_flock(tmp_path):
+    """The 3-D view frames the flock and the target from the first tick, follows the flock as it moves,
+    stops following the moment the user moves the camera (and leaves their camera alone), and "Reset
+    view" frames the flock again. The control panel is docked at the right edge, so "framed" is measured
+    where the user sees it: each sensor projected through the page's own camera must land in the canvas
+    and under no GUI panel, the flock's middle near the canvas's middle, the flock not a speck."""
+    _require_browser()
+    from playwright.sync_api import expect, sync_playwright
+
+    n = 12
+    with LiveDashboardOn("camera", log=tmp_path / "dashboard.log") as dash, sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(f"http://127.0.0.1:{dash.port}/")
+        page.wait_for_function("() => /\\(world at -1\\)/.test(document.body.innerText)", timeout=60_000,
+                               polling=500)
+        follow = page.get_by_label("Follow the flock")
+        expect(follow).to_be_checked()
+
+        def run(ticks, last: int) -> None:
+            for k in ticks:
+                dash.publish(_marching_flock(n, k))
+                time.sleep(0.03)
+            _wait_tick(page, last, timeout_ms=60_000)
+            page.evaluate(CLOSE_NOTICE)
+
+        def wait_framed(what: str, timeout_s: float = 45.0) -> dict:
+            """Until the flock is framed (the camera glides there: time constant 0.35 s, longer on a
+            loaded machine); fails with what is wrong."""
+            end = time.monotonic() + timeout_s
+            while True:
+                page.evaluate(CLOSE_NOTICE)
+                view = page.evaluate(FLOCK_ON_PAGE)
+                if not framed(view) or time.monotonic() > end:
+                    break
+                page.wait_for_timeout(250)
+            assert framed(view) == [], (what, framed(view), view)
+            return view
+
+        run(range(15), 14)
+        first = wait_framed("at start")
+        run(range(15, 45), 44)
+        moved = wait_framed("after the flock marched 90 m")
+        # the camera went along: its look-at point moved by about as much (three.js axes: a rotation of ours)
+        shift = float(np.linalg.norm(np.subtract(moved["target"], first["target"])))
+        assert 60 < shift < 120, (first["target"], moved["target"])
+
+        # the user orbits the camera: following stops, and the camera stays where the user put it
+        c = moved["canvas"]
+        page.mouse.move(c["x"] + c["w"] / 2, c["y"] + c["h"] / 2)
+        page.mouse.down()
+        page.mouse.move(c["x"] + c["w"] / 2 + 120, c["y"] + c["h"] / 2 + 40, steps=8)
+        page.mouse.up()
+        expect(follow).not_to_be_checked(timeout=30_000)
+        held = page.evaluate(FLOCK_ON_PAGE)["target"]
+        run(range(45, 75), 74)
+        page.wait_for_timeout(1500)          # what a following camera needs to catch up (and this one must not)
+        left = page.evaluate(FLOCK_ON_PAGE)
+        assert np.allclose(left["target"], held, atol=1e-3), (held, left["target"])   # not fought
+        assert framed(left), "the flock marched 90 m out of a view that does not follow: still framed?"
+
+        # Reset view: framed again, and following again
+        page.get_by_role("button", name="Reset view").click()
+        expect(follow).to_be_checked(timeout=30_000)
+        wait_framed("after Reset view")
+        run(range(75, 90), 89)
+        wait_framed("following again after Reset view")
+        browser.close()
+    assert not errors, errors
+
+
+def test_readmes_main_job_as_a_user_runs_it_on_a_loaded_machine(tmp_path):
+    """The README's main job — ``flocktrack run scenarios/demo.toml --dashboard --out DIR`` (shortened to 150
+    ticks, the dashboard closed at the end) — typed as a user would, while a CPU hog runs beside it on this
+    2-core machine: the page shows the flock in view (every sensor on the canvas, under no panel), every
+    plot panel draws its lines, the terminal's status line counts up to the end, and the results are
+    written. A screenshot of the page is kept in the test's directory."""
+    _require_browser()
+    import re
+    import subprocess
+    import sys
+
+    from playwright.sync_api import sync_playwright
+
+    from flocktrack.launch import free_port
+
+    port, out, ticks = free_port(), tmp_path / "demo", 150
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    proc = subprocess.Popen([sys.executable, "-m", "flocktrack", "run", "scenarios/demo.toml", "--dashboard",
+                             "--dashboard-port", str(port), "--no-linger", "--ticks", str(ticks), "--out", str(out)],
+                            cwd=str(ROOT), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err: list[str] = []
+    reader = threading.Thread(target=lambda: err.extend(proc.stderr), daemon=True)
+    reader.start()
+    try:
+        assert _wait_port(port, 120), "the dashboard never served"
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(f"http://127.0.0.1:{port}/")
+            view, state, why = None, None, ["not looked yet"]
+            end = time.monotonic() + 150
+            while time.monotonic() < end and proc.poll() is None:
+                page.evaluate(CLOSE_NOTICE)
+                view, state = page.evaluate(FLOCK_ON_PAGE), page.evaluate(UPLOT_STATE)
+                why = framed(view, centre_tol=0.3) + panels_drawn(state, 25)
+                if not why:
+                    break
+                page.wait_for_timeout(500)
+            page.screenshot(path=str(tmp_path / "main_job.png"))
+            assert why == [], (why, view, state)
+            browser.close()
+        assert proc.wait(300) == 0, "".join(err[-30:])
+    finally:
+        hog.kill()
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+    reader.join(10)
+    counts = [int(m.group(1)) for ln in err for m in [re.match(r"tick (\d+)/150 · ", ln)] if m]
+    assert len(set(counts)) >= 4 and counts == sorted(counts) and counts[-1] == ticks, err[-20:]
+    assert (out / "summary.json").is_file() and (out / "metrics.csv").is_file()
+    assert f"results in {out}/" in proc.stdout.read()
