@@ -8,7 +8,7 @@ of such a transition until:
   one running, the restarted one spawned, the router about to close;
 * a restarted sensor (crash heal) is a member again (its liveliness token is back), so it takes part
   from its heal tick on;
-* after a router restart: the outage has been seen (the launcher's token vanished with the router) —
+* after a router restart: the outage has been seen (every member's token vanished with the router) —
   the fault's tick is published into the outage and lost, as it would be on a real network — and then
   every member that was there before the restart is back before the next tick.
 
@@ -58,20 +58,24 @@ class FaultHold:
         return True
 
     def member(self, m: Member, alive: bool) -> bool:
-        """A liveliness change. Returns True when it shows that an awaited router outage has begun: the
-        held tick is then published (and lost in the outage); the next one waits for everyone's return."""
+        """A liveliness change. Returns True when it shows that an awaited router outage has begun — every
+        member we had before it is gone, the launcher included (a closing router drops its links one by
+        one: the launcher's going alone does not prove the others are cut off yet). The held tick is then
+        published, and lost in the outage; the next one waits for everyone's return."""
         (self.members.add if alive else self.members.discard)(m)
         if alive:
             self.returning.discard(m)
-        elif m == LAUNCHER:
-            if self.outage is not None:        # the router went down (its ack may have gone with it)
-                self.returning |= self.outage
-                self.outage = None
-                self.acks = {a: kind for a, kind in self.acks.items() if kind != "router_restart"}
-                return True
-            else:                               # the launcher itself is gone: nobody will answer
-                self.acks.clear()
-                self.returning.clear()
+            return False
+        if self.outage is not None:
+            if LAUNCHER in self.members or self.outage & self.members:
+                return False
+            self.returning |= self.outage      # the router is down (its ack may have gone with it)
+            self.outage = None
+            self.acks = {a: kind for a, kind in self.acks.items() if kind != "router_restart"}
+            return True
+        if m == LAUNCHER:                      # the launcher itself is gone: nobody will answer
+            self.acks.clear()
+            self.returning.clear()
         return False
 
     @property
