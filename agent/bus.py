@@ -167,9 +167,10 @@ def zenoh_config(connect: str | None = None, listen: str | None = None, mode: st
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen.split(",")))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    if mode == "client":
+    if mode == "client" and conf.get_json("connect/retry") == "null":
         # a client that lost its router retries every 0.1 s, backing off to 1 s (Zenoh's default: 1 s → 4 s),
-        # so that after a router restart the flock is back within a few hundred ms of the router
+        # so that after a router restart the flock is back within a few hundred ms of the router (a config
+        # file that sets its own retry, e.g. broker_cfg/mesh/client.json5, keeps it)
         conf.insert_json5("connect/retry", json.dumps(CLIENT_RETRY))
     return conf
 
