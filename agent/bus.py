@@ -12,6 +12,7 @@ Dropped messages are counted per reason in :attr:`BusStats.dropped`; they never 
 from __future__ import annotations
 
 import logging
+import weakref
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -175,6 +176,20 @@ def zenoh_config(connect: str | None = None, listen: str | None = None, mode: st
     return conf
 
 
+#: put into a bus's queue to wake its poll (see :func:`wake_all`)
+_WAKE = ("", b"", ("wake", None))
+_LIVE: "weakref.WeakSet[ZenohBus]" = weakref.WeakSet()
+
+
+def wake_all() -> None:
+    """Wake every ZenohBus's poll in this process now — call it from a signal handler that asks the loop
+    to stop. CPython 3.11's ``SimpleQueue.get(timeout=…)`` can stay blocked after a signal interrupts it
+    until an item arrives (seen: a dashboard that got SIGTERM after the run's last message never left its
+    poll); ``SimpleQueue.put`` is reentrant, safe in a signal handler."""
+    for bus in list(_LIVE):
+        bus._q.put(_WAKE)
+
+
 class ZenohBus:
     """One role per OS process over Eclipse Zenoh, on the key space ``ft/<run>/…``.
 
@@ -204,6 +219,7 @@ class ZenohBus:
         self._pubs: dict[str, object] = {}
         self._decls: list = []
         self._closed = False
+        _LIVE.add(self)
 
     # ------------------------------------------------------------------ Bus protocol
     def publish(self, key: str, msg: wire.Message) -> None:
@@ -249,6 +265,8 @@ class ZenohBus:
         except queue.Empty:
             return 0
         while True:
+            if item is _WAKE:
+                return n
             key, data, handler = item
             if isinstance(handler, tuple) and handler[0] == "filtered":
                 if handler[2](key, data):

@@ -35,8 +35,14 @@ class StopFlag:
 
     def install(self) -> "StopFlag":
         for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: self.event.set())
+            signal.signal(sig, self._on_signal)
         return self
+
+    def _on_signal(self, *_) -> None:
+        from .bus import wake_all
+
+        self.event.set()
+        wake_all()      # a poll blocked in its queue sees the flag now
 
     @property
     def set(self) -> bool:

@@ -45,8 +45,30 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
     stop = threading.Event()
+
+    def on_stop(*_):
+        """Stop the loop and wake its poll. A dashboard writes nothing, so if it still has not stopped 10 s
+        later it dumps every thread's stack to its log — the evidence — and exits anyway: a process asked to
+        stop, stops."""
+        from agent.bus import wake_all
+
+        stop.set()
+        wake_all()        # the loop's poll may sit in its queue (agent/bus.py wake_all)
+
+        def watchdog():   # a daemon thread: a normal exit ends it first
+            import faulthandler
+            import time
+
+            time.sleep(10.0)
+            logging.getLogger("dashboards").error("did not stop within 10 s of the signal; threads:")
+            faulthandler.dump_traceback(all_threads=True)
+            sys.stderr.flush()
+            os._exit(0)
+
+        threading.Thread(target=watchdog, daemon=True).start()
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_stop)
 
     from .live import replay_model_from_file, run_live, run_replay
 

@@ -132,7 +132,10 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     stop_signals = {}
 
     def on_signal(signum, _frame):
+        from agent.bus import wake_all
+
         launcher.request_stop()
+        wake_all()      # the supervision loop's poll may sit in its queue (agent/bus.py wake_all)
 
     for s in (signal.SIGINT, signal.SIGTERM):
         stop_signals[s] = signal.signal(s, on_signal)

@@ -144,5 +144,8 @@ def test_cut_a_hosts_link_and_heal_it(net, tmp_path):
               "down_s": down_s}
     (tmp_path / "timings.json").write_text(json.dumps(result))
     print("multi-host cut/heal:", result)
-    assert detect <= 2.0, result     # lease 1 s + keep-alive 250 ms
-    assert recover <= 1.0, result    # re-dial every ≤ 250 ms, each attempt given 500 ms
+    # prompt, not a benchmark: on an idle machine ~1.0 s to detect (lease 1 s + keep-alive 250 ms) and
+    # ~0.3 s to recover (re-dial every ≤ 250 ms, each attempt given 500 ms); two loaded copies at once took
+    # 1.14 s to recover (bench/flake_hunt.py) — the timings are in timings.json, the bounds leave room
+    assert detect <= 3.0, result
+    assert recover <= 3.0, result
