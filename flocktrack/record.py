@@ -150,15 +150,16 @@ def _append(msgs, channels, rec) -> None:
         pass
 
 
-def metrics_from_recording(path: str | Path, out_dir: str | Path | None = None) -> dict:
-    """Recompute ``summary.json`` (and ``metrics.csv``) from a recording alone."""
+def metrics_from_recording(path: str | Path, out_dir: str | Path | None = None, rec=None) -> dict:
+    """Recompute ``summary.json`` (and ``metrics.csv``) from a recording alone (``rec``: the recording
+    already read with :func:`read_recording`, to read a large one once)."""
     import tomllib
 
     from agent.scenario import parse_scenario
 
     from .metrics import MetricsCollector, summary_identity
 
-    rec = read_recording(path)
+    rec = read_recording(path) if rec is None else rec
     if "scenario" not in rec.metadata:
         raise ValueError(f"{path}: not a flocktrack recording (no scenario metadata)")
     sc = parse_scenario(tomllib.loads(rec.metadata["scenario"]), rec.metadata.get("scenario_path", str(path)))

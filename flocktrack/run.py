@@ -203,8 +203,8 @@ def _status_line(sc: Scenario, run: str, launcher: Launcher, keys):
 def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, run: str, keys,
                    wall: float) -> tuple[dict, dict]:
     """summary.json + metrics.csv from the recording, and run.json."""
-    summary = metrics_from_recording(out / "recording.mcap", out)
-    rec = read_recording(out / "recording.mcap")
+    rec = read_recording(out / "recording.mcap")          # read once: a long run's file is large
+    summary = metrics_from_recording(out / "recording.mcap", out, rec=rec)
     info = {"transport": "zenoh", "run": run, "rc": rc, "wall_s": wall, "ticks_per_s": sc.run.ticks / wall,
             "router": launcher.endpoint, "recorded_messages": len(rec.messages), "recording_complete": rec.complete,
             "missed_deadlines": launcher.deadlines,
