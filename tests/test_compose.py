@@ -264,6 +264,9 @@ def test_services_are_the_launchers_children(tmp_path, restart, max_restarts):
         c, s = plan[child], svcs[service]
         assert s["restart"] == compose.docker_restart(c.policy), service
         want = [a.replace(launcher.endpoint, "tcp/router:7447") for a in c.argv[1:]]
+        if "launcher/0" in want:   # the launcher's world waits for the launcher (fault acks); compose has none
+            i = want.index("launcher/0")
+            want = want[:i - 1] + want[i + 1:]
         cmd = s["command"]
         if cmd[:2] == ["sh", "-c"]:
             cmd = cmd[2].split("exec ", 1)[1].replace(' "$@"', "").split()
