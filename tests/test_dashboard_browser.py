@@ -84,7 +84,7 @@ CLOSE_NOTICE = "() => document.querySelector('#webgl-software-rendering button')
 DOCS = bool(os.environ.get("FLOCKTRACK_DOCS_SCREENSHOTS"))
 VIEWPORT = {"width": 1600, "height": 1000} if DOCS else {"width": 1280, "height": 800}
 FIRST_SHOT_TICK = 150 if DOCS else 25   # docs: a longer run and more history in the plots
-RUN_TICKS = 500 if DOCS else 260       # realtime, 0.16 s per tick, plus the time the page holds it paused
+RUN_TICKS = 500 if DOCS else 420       # realtime, 0.16 s per tick: long enough for the page (slow to start on a fresh clone) to finish its clicks
 SHOW_TICK = "() => { const m = document.body.innerText.match(/tick (\\d+) \\(world/); return m ? +m[1] : -1; }"
 
 
