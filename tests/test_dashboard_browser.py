@@ -430,6 +430,19 @@ class LiveDashboardOn:
         self.router.close()
 
 
+def _open_live_page(p, dash: "LiveDashboardOn"):
+    """Chromium on the dashboard's page, once the page is live (it shows "world at -1": nothing published
+    yet); returns the browser, the page and the list its page errors go to."""
+    browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(f"http://127.0.0.1:{dash.port}/")
+    page.wait_for_function("() => /\\(world at -1\\)/.test(document.body.innerText)", timeout=60_000,
+                           polling=500)
+    return browser, page, errors
+
+
 def _starved_stream(n: int, ticks: int):
     """What the dashboard of a starved run receives, tick by tick (a list of message lists):
 
@@ -479,13 +492,7 @@ def test_live_plots_draw_through_a_starved_stream(tmp_path):
     n, ticks = 12, 110
     stream = _starved_stream(n, ticks)
     with LiveDashboardOn("plotgaps", log=tmp_path / "dashboard.log") as dash, sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1280, "height": 800})
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(f"http://127.0.0.1:{dash.port}/")
-        page.wait_for_function("() => /\\(world at -1\\)/.test(document.body.innerText)", timeout=60_000,
-                               polling=500)          # the page is live; nothing published yet
+        browser, page, errors = _open_live_page(p, dash)   # live; nothing published yet
         for k in range(65):
             dash.publish(stream[k])
             time.sleep(0.02)
@@ -595,13 +602,7 @@ def test_the_view_frames_and_follows_the_flock(tmp_path):
 
     n = 12
     with LiveDashboardOn("camera", log=tmp_path / "dashboard.log") as dash, sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1280, "height": 800})
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(f"http://127.0.0.1:{dash.port}/")
-        page.wait_for_function("() => /\\(world at -1\\)/.test(document.body.innerText)", timeout=60_000,
-                               polling=500)
+        browser, page, errors = _open_live_page(p, dash)
         follow = page.get_by_label("Follow the flock")
         expect(follow).to_be_checked()
 
