@@ -10,7 +10,7 @@ import json
 import logging
 import sys
 
-from .assemble import build_sensor, build_target
+from .assemble import build_extra, build_sensor, build_target, extra_processes
 from .bus import ZenohBus
 from .runner import StopFlag, drive, idle_poll_s, profiled
 from .scenario import ScenarioError, load_scenario
@@ -54,12 +54,10 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         role, name = build_sensor(sc, args.id, design, rejoin=args.rejoin), f"agent/{args.id}"
     elif args.role == "fusion":
-        from .assemble import build_fusion
-
-        if sc.uav is None:
+        if "fusion" not in extra_processes(sc):
             print(f"error: {args.scenario} has no fusion solver ([uavs]/[fusion] tables)", file=sys.stderr)
             return 2
-        role, name = build_fusion(sc), "fusion/0"
+        role, name = build_extra(sc, "fusion"), "fusion/0"
     else:
         role, name = build_target(sc), "target/0"
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)

@@ -6,6 +6,8 @@ never looks at the whole graph itself (DESIGN.md floors).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -13,6 +15,7 @@ import numpy as np
 from .control.flocking import FlockingController
 from .estimators.registry import make_estimator
 from .models import DisturbedSensor, IntelligentTarget, LinearSensor, LinearTarget
+from .roles.common import Role
 from .roles.sensor import SensorRole
 from .roles.target import TargetRole
 from .scenario import Scenario
@@ -60,12 +63,8 @@ def _warm_up(estimators, to_record) -> None:
                 est.solve()
 
 
-def build_target(sc: Scenario) -> TargetRole:
+def _flock_target(sc: Scenario) -> TargetRole:
     t = sc.target
-    if sc.uav is not None:
-        from .models_uav import StreamTarget
-
-        return TargetRole(sc.run.ticks, StreamTarget(uav_stream(sc), sc.run.T), False, 2, T=sc.run.T)
     x0 = np.array(t.x0, float)
     rng = rng_for(sc.run.seed, "target", 0, "process_noise")
     if t.kind == "intelligent":
@@ -77,12 +76,8 @@ def build_target(sc: Scenario) -> TargetRole:
     return TargetRole(sc.run.ticks, model, t.kind == "intelligent", sc.pos_dims, t.estimate_source, T=sc.run.T)
 
 
-def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rejoin: bool = False):
-    if sc.uav is not None:
-        from .roles.uav import UavRole
-
-        return UavRole(i, sc.run.ticks, sc.run.T, uav_stream(sc))
-    est = make_estimator(sc, i, design or {})
+def _flock_sensor(sc: Scenario, i: int, design: dict[str, Any], rejoin: bool) -> SensorRole:
+    est = make_estimator(sc, i, design)
     ctrl = None
     if sc.sensors.motion == "flocking":
         c = sc.control
@@ -93,3 +88,53 @@ def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rej
     return SensorRole(i, sc.run.ticks, sc.run.T, est, meas,
                       rng_for(sc.run.seed, "agent", i, "measurement"), q0, None, ctrl, sc.pos_dims, rejoin,
                       seed=sc.run.seed)
+
+
+def _uav_target(sc: Scenario) -> TargetRole:
+    from .models_uav import StreamTarget
+
+    return TargetRole(sc.run.ticks, StreamTarget(uav_stream(sc), sc.run.T), False, 2, T=sc.run.T)
+
+
+def _uav_sensor(sc: Scenario, i: int, design: dict[str, Any], rejoin: bool) -> Role:
+    from .roles.uav import UavRole
+
+    return UavRole(i, sc.run.ticks, sc.run.T, uav_stream(sc))
+
+
+@dataclass(frozen=True)
+class WorldKind:
+    """How a kind of scenario (:attr:`agent.scenario.Scenario.kind`) becomes roles: its target, its
+    sensor i, and the extra processes it needs beyond world, target and sensors (by process name)."""
+
+    target: Callable[[Scenario], TargetRole]
+    sensor: Callable[[Scenario, int, dict[str, Any], bool], Role]
+    extra: tuple[str, ...] = ()
+
+
+KINDS: dict[str, WorldKind] = {
+    "flock": WorldKind(_flock_target, _flock_sensor),
+    "uav_fusion": WorldKind(_uav_target, _uav_sensor, extra=("fusion",)),
+}
+
+
+def build_target(sc: Scenario) -> TargetRole:
+    """The target role of scenario ``sc``."""
+    return KINDS[sc.kind].target(sc)
+
+
+def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rejoin: bool = False) -> Role:
+    """Sensor ``i`` of scenario ``sc`` (its estimator built with the runtime's pre-run ``design``)."""
+    return KINDS[sc.kind].sensor(sc, i, design or {}, rejoin)
+
+
+def extra_processes(sc: Scenario) -> tuple[str, ...]:
+    """The roles scenario ``sc`` runs beyond world, target and sensors (e.g. ``("fusion",)``)."""
+    return KINDS[sc.kind].extra
+
+
+def build_extra(sc: Scenario, name: str) -> Role:
+    """One of :func:`extra_processes`' roles."""
+    if name == "fusion" and name in extra_processes(sc):
+        return build_fusion(sc)
+    raise ValueError(f"{sc.source} runs no {name!r} role (its extra roles: {', '.join(extra_processes(sc)) or 'none'})")

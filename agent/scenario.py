@@ -4,47 +4,50 @@ key and what was expected (and how to fix it).
 A scenario has these tables (every key optional unless marked *required*; see ``scenarios/*.toml``):
 
 ``[run]``        name, ticks, T (s), seed, mode ("lockstep" | "realtime"), deadline_s, burn_in, speed
-``[target]``     kind ("normal" | "intelligent"), model ("double_integrator" | "matrices"), dim, A, B,
-                 Q (covariance of w in x⁺ = Ax + Bw), x0 (*required*), ke, estimate_source
-``[sensors]``    n (*required*), C, R, positions | (grid_rows, spacing, jitter, origin), motion
+``[target]``     kind ("normal" | "intelligent"), model ("double_integrator" | "matrices" | "continuous"), dim,
+                 A, B, Q (covariance of w in x⁺ = Ax + Bw), x0 (*required*), ke, estimate_source
+``[sensors]``    n (*required*), C, R | (D, v_std), positions | (grid_rows, spacing, jitter, origin), motion
                  ("flocking" | "static"), sensing_range, beta
-``[estimator]``  name ("minimax" | "kalman" | "hinf_switching"), rounds, eta, S, Q, P0, x0, x0_offsets,
-                 gamma, R_design, Q_design, comm_noise, lambda0
+``[estimator]``  name (a registered estimator, :func:`agent.estimators.registry.names`), the common keys
+                 rounds, eta, Q, P0, x0, x0_offsets, resilient_f — and the chosen estimator's own keys
+                 (its spec's parameters dataclass, e.g. S for minimax, gamma for hinf_switching)
 ``[topology]``   kind ("range" | "schedule"), range, dwell_ticks, [[topology.graphs]] (edges, b, weights)
 ``[control]``    flocking gains kc, kr, kd, h1, h2, l1, l2, u_max
+``[faults]``     seed, link_loss, [[faults.events]] (see topology/faults.py)
 
-This module is pure parsing/validation; it reads a file only in :func:`load_scenario`.
+A file with ``[uavs]`` is the other kind of world: García Carrillo et al.'s UAVs and fusion role
+(:attr:`Scenario.uav`, a :class:`agent.models_uav.CarrilloScenario`).
+
+Overrides (``--set section.key=value``, sweep grids, :meth:`Scenario.with_overrides`) all go through
+:func:`override` on the TOML mapping before validation: one mechanism. This module reads a file only in
+:func:`scenario_data` / :func:`load_scenario`.
 """
 
 from __future__ import annotations
 
 import math
 import tomllib
-import types
-import typing
-from dataclasses import MISSING, dataclass, field, fields, replace
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from .estimators.registry import default_name
+from .estimators.registry import names as estimator_names
+from .estimators.registry import spec_of
+from .estimators.spec import NoParams
 from .models import double_integrator
+from .schema import Matrices, Matrix, Pairs, ScenarioError, Vector, build_table, check_covariance, check_shape
+from .seeding import rng_for
 from .suggest import did_you_mean
 
-Matrix = list[list[float]]
-Vector = list[float]
-Matrices = list[list[list[float]]]   #: one matrix per sensor
+if TYPE_CHECKING:
+    from .models_uav import CarrilloScenario
 
-
-class ScenarioError(ValueError):
-    """A scenario that cannot run. The message names the file, the key, and the fix."""
-
-    def __init__(self, source: str, key: str, problem: str, fix: str = ""):
-        self.source, self.key, self.problem, self.fix = source, key, problem, fix
-        msg = f"{source}: [{key}] {problem}"
-        if fix:
-            msg += f" — fix: {fix}"
-        super().__init__(msg)
+__all__ = ["Scenario", "ScenarioError", "load_scenario", "parse_scenario", "scenario_data", "override",
+           "parse_fault_event", "validate_fault_event", "FAULT_KINDS"]
 
 
 # ----------------------------------------------------------------------------- sections
@@ -93,41 +96,29 @@ class SensorsCfg:
 
 
 @dataclass(frozen=True)
-class EstimatorCfg:
-    name: Literal["minimax", "kalman", "hinf_switching", "min_energy", "none"] = "minimax"
+class EstimatorCommon:
+    """The ``[estimator]`` keys every estimator shares (its own keys are its spec's ``params``)."""
+
+    name: str = ""           #: a registered estimator (agent.estimators.registry.names()); "" = the default
     rounds: int = 1
     eta: str = "1/(dmax+1)"
-    S: Matrix | None = None
     Q: Matrix | None = None
     P0: Matrix | None = None
     x0: Vector | None = None
     x0_offsets: Matrix | None = None
-    gamma: float = 0.1
-    R_design: Matrix | None = None
-    Q_design: Matrix | None = None
-    comm_noise: Matrix | None = None
-    lambda0: float | None = None
     resilient_f: int = 0  #: W-MSR: tolerate up to f Byzantine neighbours (0 = plain consensus)
-    # --- min_energy (Zamani & Ugrinovskii): SDP (29) design and filter (20)/(21)
-    edges: list[list[int]] | None = None     #: directed [i, j]: node i receives from node j
-    W: Matrix | Matrices | None = None       #: one matrix, or one per edge
-    F: Matrix | Matrices | None = None
-    P: str = "consensus"                     #: "consensus" = ½(𝐋 + 𝐋ᵀ) ⊗ I (reproduces Table I)
-    zbar_min: float = 0.0
-    margin: float = 1e-6
-    gamma2_factor: float = 1.1
-    centre: Literal["logmargin", "logdet"] = "logmargin"
-    solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
-    design_file: str | None = None
-    method: Literal["expm", "rk4"] = "expm"
-    substeps: int = 10
-    hold: Literal["model", "zoh"] = "model"
-    channel_noise_std: float = 0.0
+
+
+@dataclass(frozen=True)
+class EstimatorCfg(EstimatorCommon):
+    """``[estimator]``: the common keys and ``params``, the chosen estimator's own (its spec's dataclass)."""
+
+    params: Any = field(default_factory=NoParams)
 
 
 @dataclass(frozen=True)
 class GraphCfg:
-    edges: list[list[int]] = field(default_factory=list)
+    edges: Pairs = field(default_factory=list)
     b: Vector = field(default_factory=list)
     weights: Vector | None = None
 
@@ -195,8 +186,16 @@ class Scenario:
     control: ControlCfg = field(default_factory=ControlCfg)
     faults: FaultsCfg = field(default_factory=FaultsCfg)
     source: str = "<scenario>"
-    #: García Carrillo et al.'s UAV/fusion world (agent.models_uav.CarrilloScenario) when the file has [uavs]
-    uav: Any = None
+    #: García Carrillo et al.'s UAV/fusion world when the file has [uavs] (``kind == "uav_fusion"``)
+    uav: CarrilloScenario | None = None
+    #: the TOML mapping this scenario was parsed from (overrides apply to it, then it is parsed again)
+    data: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def kind(self) -> Literal["flock", "uav_fusion"]:
+        """Which world: a flock of sensors running a distributed estimator (the default), or García
+        Carrillo et al.'s UAVs whose measurements go to a fusion role."""
+        return "flock" if self.uav is None else "uav_fusion"
 
     # ------------------------------------------------------------------ derived model matrices
     @property
@@ -284,8 +283,6 @@ class Scenario:
         s = self.sensors
         if s.positions is not None:
             return np.array(s.positions, float)
-        from .seeding import rng_for
-
         rng = rng_for(self.run.seed, "layout")
         cols = math.ceil(s.n / s.grid_rows)
         pts = [(c * s.spacing, r * s.spacing) for r in range(s.grid_rows) for c in range(cols)][: s.n]
@@ -293,6 +290,11 @@ class Scenario:
         if s.jitter > 0:
             P = P + rng.uniform(-s.jitter, s.jitter, size=P.shape)
         return P
+
+    def initial_covariance(self) -> np.ndarray:
+        """Every node's P₀: estimator.P0, else the identity."""
+        P0 = self.estimator.P0
+        return np.eye(self.m) if P0 is None else np.array(P0, float)
 
     def initial_estimates(self) -> np.ndarray:
         """Each node's x̂₀ (n × m): estimator.x0 (default 0) plus the node's x0_offsets row."""
@@ -304,176 +306,38 @@ class Scenario:
         return X
 
     def with_overrides(self, **kw: Any) -> "Scenario":
-        """Copy with dotted overrides, e.g. ``{"run.ticks": 10, "estimator.name": "kalman"}``."""
-        sc = self
-        for dotted, value in kw.items():
-            sect, _, key = dotted.partition(".")
-            cur = getattr(sc, sect)
-            sc = replace(sc, **{sect: replace(cur, **{key: value})})
-        return validate(sc)
+        """Copy with dotted overrides, e.g. ``{"run.ticks": 10, "estimator.name": "kalman"}`` (validated)."""
+        return parse_scenario(override(self.data, kw), self.source)
 
 
 _SECTIONS = {"run": RunCfg, "target": TargetCfg, "sensors": SensorsCfg, "estimator": EstimatorCfg,
              "topology": TopologyCfg, "control": ControlCfg, "faults": FaultsCfg}
 _REQUIRED = {"run", "target", "sensors"}
-_REQUIRED_KEYS = {("target", "x0"), ("sensors", "n")}
-
-
-# ----------------------------------------------------------------------------- generic checking
-
-def _describe(tp: Any) -> str:
-    if tp is float:
-        return "a number"
-    if tp is int:
-        return "an integer"
-    if tp is str:
-        return "a string"
-    if tp is bool:
-        return "true or false"
-    origin = typing.get_origin(tp)
-    if origin is Literal:
-        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
-    if tp == Matrix:
-        return "a matrix (list of equal-length lists of numbers)"
-    if tp == Vector:
-        return "a list of numbers"
-    if tp == Matrices:
-        return "a list of matrices (one per sensor or edge)"
-    if tp == list[list[int]]:
-        return "a list of [i, j] integer pairs"
-    return str(tp)
-
-
-def _coerce(value: Any, tp: Any, src: str, key: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if origin in (types.UnionType, typing.Union):
-        if value is None and type(None) in args:
-            return None
-        inner = [a for a in args if a is not type(None)]
-        if Matrices in inner and Matrix in inner:
-            # a list of matrices is three levels deep; a matrix two
-            deep = isinstance(value, list) and value and isinstance(value[0], list) and value[0] \
-                and isinstance(value[0][0], list)
-            return _coerce(value, Matrices if deep else Matrix, src, key)
-        return _coerce(value, inner[0], src, key)
-    bad = ScenarioError(src, key, f"expected {_describe(tp)}, got {value!r}", f"write {key} as {_describe(tp)}")
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise bad
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise bad
-        return value
-    if tp is str or tp is bool:
-        if not isinstance(value, tp):
-            raise bad
-        return value
-    if origin is Literal:
-        if value not in args:
-            hint = did_you_mean(value, args, quote="'") if isinstance(value, str) else ""
-            if hint:
-                raise ScenarioError(src, key, bad.problem, f"{hint}write {key} as {_describe(tp)}")
-            raise bad
-        return value
-    if tp == Vector:
-        if not isinstance(value, list):
-            raise bad
-        return [_coerce(v, float, src, f"{key}[{i}]") for i, v in enumerate(value)]
-    if tp == Matrices:
-        if not isinstance(value, list) or not value or not all(
-                isinstance(r, list) and r and all(isinstance(x, list) for x in r) for r in value):
-            raise bad
-        return [_coerce(M, Matrix, src, f"{key}[{i}]") for i, M in enumerate(value)]
-    if tp == Matrix:
-        if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
-            raise bad
-        rows = [_coerce(r, Vector, src, f"{key}[{i}]") for i, r in enumerate(value)]
-        if len({len(r) for r in rows}) != 1 or not rows[0]:
-            raise ScenarioError(src, key, "matrix rows have different lengths", "give every row the same length")
-        for i, r in enumerate(rows):
-            if not all(math.isfinite(x) for x in r):
-                raise ScenarioError(src, f"{key}[{i}]", "matrix entries must be finite")
-        return rows
-    if tp == list[list[int]]:
-        if not isinstance(value, list):
-            raise bad
-        out = []
-        for i, e in enumerate(value):
-            if (not isinstance(e, list) or len(e) != 2
-                    or not all(isinstance(v, int) and not isinstance(v, bool) for v in e)):
-                raise ScenarioError(src, f"{key}[{i}]", f"expected an [i, j] integer pair, got {e!r}")
-            out.append(list(e))
-        return out
-    raise AssertionError(f"unsupported schema type {tp}")  # pragma: no cover
-
-
-def _build(cls: type, table: Any, src: str, section: str) -> Any:
-    if not isinstance(table, dict):
-        raise ScenarioError(src, section, f"expected a table, got {table!r}", f"write [{section}] as a TOML table")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in fields(cls)}
-    for k in table:
-        if k not in names:
-            raise ScenarioError(src, f"{section}.{k}", "unknown key",
-                                f"{did_you_mean(k, names)}remove it or use one of: {', '.join(sorted(names))}")
-    kw = {}
-    for f in fields(cls):
-        key = f"{section}.{f.name}"
-        if f.name not in table:
-            if (section, f.name) in _REQUIRED_KEYS:
-                raise ScenarioError(src, key, "is required", f"add {f.name} = … to [{section}]")
-            continue
-        if cls is FaultsCfg and f.name == "events":
-            ev = table["events"]
-            if not isinstance(ev, list):
-                raise ScenarioError(src, key, "expected an array of tables", "write [[faults.events]] blocks")
-            kw["events"] = [_build(FaultEventCfg, e, src, f"faults.events[{i}]") for i, e in enumerate(ev)]
-            continue
-        if cls is TopologyCfg and f.name == "graphs":
-            gl = table["graphs"]
-            if not isinstance(gl, list):
-                raise ScenarioError(src, key, "expected an array of tables", "write [[topology.graphs]] blocks")
-            kw["graphs"] = [_build(GraphCfg, g, src, f"topology.graphs[{i}]") for i, g in enumerate(gl)]
-            continue
-        kw[f.name] = _coerce(table[f.name], hints[f.name], src, key)
-    return cls(**kw)
+_REQUIRED_KEYS = {"target": ("x0",), "sensors": ("n",)}
 
 
 # ----------------------------------------------------------------------------- cross-field validation
 
-def _shape(src: str, key: str, M: Any, shape: tuple[int, int], what: str) -> None:
-    got = np.shape(np.array(M, float))
-    if got != shape:
-        raise ScenarioError(src, key, f"expected a {shape[0]}×{shape[1]} matrix ({what}), got shape "
-                            f"{'×'.join(map(str, got))}", f"give {key} {shape[0]} rows of {shape[1]} numbers")
-
-
-def _pd(src: str, key: str, M: Any, semi: bool = False) -> None:
-    M = np.array(M, float)
-    if not np.allclose(M, M.T, atol=1e-12):
-        raise ScenarioError(src, key, "covariance must be symmetric", "make the matrix symmetric")
-    lo = float(np.linalg.eigvalsh(M).min())
-    if (lo < 0) if semi else (lo <= 0):
-        kind = "positive semidefinite" if semi else "positive definite"
-        raise ScenarioError(src, key, f"covariance must be {kind} (smallest eigenvalue {lo:.3g})",
-                            f"use a {kind} matrix, e.g. a diagonal with {'non-negative' if semi else 'positive'} entries")
-
-
 def validate(sc: Scenario) -> Scenario:
-    """Cross-field checks: dimensions, covariances, schedules. Returns the scenario unchanged."""
-    src = sc.source
-    r, t, s, e, tp = sc.run, sc.target, sc.sensors, sc.estimator, sc.topology
+    """Cross-field checks, one function per section, then the estimator's own (its spec's ``check``).
+    Returns the scenario unchanged."""
+    for check in (_check_run, _check_target, _check_sensors, _check_estimator, _check_topology, _check_faults):
+        check(sc)
+    return sc
+
+
+def _check_run(sc: Scenario) -> None:
+    src, r = sc.source, sc.run
     if r.ticks < 1:
         raise ScenarioError(src, "run.ticks", f"must be ≥ 1, got {r.ticks}")
     if not r.T > 0:
         raise ScenarioError(src, "run.T", f"sample time must be > 0, got {r.T}")
     if not r.speed > 0:
         raise ScenarioError(src, "run.speed", f"realtime factor must be > 0, got {r.speed}", "e.g. speed = 1.0")
-    if s.n < 1:
-        raise ScenarioError(src, "sensors.n", f"need at least one sensor, got {s.n}")
-    m = len(t.x0)
+
+
+def _check_target(sc: Scenario) -> None:
+    src, t, m = sc.source, sc.target, sc.m
     if t.model == "double_integrator":
         if m != 2 * t.dim:
             raise ScenarioError(src, "target.x0", f"a {t.dim}-D double integrator has {2 * t.dim} states "
@@ -485,19 +349,24 @@ def validate(sc: Scenario) -> Scenario:
         if t.A is None or t.B is None:
             raise ScenarioError(src, "target.A" if t.A is None else "target.B",
                                 f"is required when model = \"{t.model}\"")
-        _shape(src, "target.A", t.A, (m, m), "m × m with m = len(x0)")
+        check_shape(src, "target.A", t.A, (m, m), "m × m with m = len(x0)")
         if np.shape(t.B)[0] != m:
             raise ScenarioError(src, "target.B", f"expected {m} rows (m = len(x0)), got {np.shape(t.B)[0]}")
     p = sc.B.shape[1]
     if t.Q is not None:
-        _shape(src, "target.Q", t.Q, (p, p), f"covariance of w, {p} × {p}")
-        _pd(src, "target.Q", t.Q, semi=True)
+        check_covariance(src, "target.Q", t.Q, p, f"covariance of w, {p} × {p}", semi=True)
     if t.kind == "intelligent":
         if t.ke == 0:
             raise ScenarioError(src, "target.ke", "an intelligent target needs a non-zero gain ke")
-        es = t.estimate_source
-        if es != "mean" and not (es.startswith("node:") and es[5:].isdigit() and int(es[5:]) < s.n):
-            raise ScenarioError(src, "target.estimate_source", f"expected \"mean\" or \"node:<i>\" with i < {s.n}, got {es!r}")
+        es, n = t.estimate_source, sc.sensors.n
+        if es != "mean" and not (es.startswith("node:") and es[5:].isdigit() and int(es[5:]) < n):
+            raise ScenarioError(src, "target.estimate_source",
+                                f"expected \"mean\" or \"node:<i>\" with i < {n}, got {es!r}")
+
+
+def _check_measurements(sc: Scenario) -> None:
+    """C (one, or one per sensor where the estimator allows it), and R or D."""
+    src, s, m = sc.source, sc.sensors, sc.m
     if s.C is None or (s.R is None and s.D is None):
         raise ScenarioError(src, "sensors.C" if s.C is None else "sensors.R", "is required",
                             "give the measurement matrix C (q × m) and noise covariance R (q × q) — or D "
@@ -508,27 +377,34 @@ def validate(sc: Scenario) -> Scenario:
         for i, Ci in enumerate(s.C):
             if np.shape(Ci)[1] != m:
                 raise ScenarioError(src, f"sensors.C[{i}]", f"expected {m} columns (m = len(x0)), got {np.shape(Ci)[1]}")
-        if sc.estimator.name != "min_energy":
-            raise ScenarioError(src, "sensors.C", "per-sensor C is supported by the min_energy estimator only",
-                                "give one common C")
+        if sc.uav is None and not spec_of(sc.estimator.name).per_sensor_C:
+            allowed = [nm for nm in estimator_names() if spec_of(nm).per_sensor_C]
+            raise ScenarioError(src, "sensors.C", f"per-sensor C is supported by the {', '.join(allowed)} "
+                                "estimator only", "give one common C")
     q = np.shape(sc.C)[0]
     if np.ndim(s.C) == 2:
-        _shape(src, "sensors.C", s.C, (q, m), f"q × m with m = {m}")
-    if s.D is not None:
-        if np.ndim(s.D) == 3 and len(s.D) != s.n:
-            raise ScenarioError(src, "sensors.D", f"one matrix per sensor expected ({s.n}), got {len(s.D)}")
-        for i in range(s.n):
-            Di, Ci = sc.D_of(i), sc.C_of(i)
-            if Di.shape[0] != Ci.shape[0]:
-                raise ScenarioError(src, "sensors.D", f"sensor {i}: D must have as many rows as C ({Ci.shape[0]})")
-            _pd(src, "sensors.D", Di @ Di.T)
-        if not s.v_std > 0:
-            raise ScenarioError(src, "sensors.v_std", f"must be > 0, got {s.v_std}")
-    else:
-        _shape(src, "sensors.R", s.R, (q, q), f"q × q with q = {q}")
-        _pd(src, "sensors.R", s.R)
+        check_shape(src, "sensors.C", s.C, (q, m), f"q × m with m = {m}")
+    if s.D is None:
+        check_covariance(src, "sensors.R", s.R, q, f"q × q with q = {q}")
+        return
+    if np.ndim(s.D) == 3 and len(s.D) != s.n:
+        raise ScenarioError(src, "sensors.D", f"one matrix per sensor expected ({s.n}), got {len(s.D)}")
+    for i in range(s.n):
+        Di, Ci = sc.D_of(i), sc.C_of(i)
+        if Di.shape[0] != Ci.shape[0]:
+            raise ScenarioError(src, "sensors.D", f"sensor {i}: D must have as many rows as C ({Ci.shape[0]})")
+        check_covariance(src, "sensors.D", Di @ Di.T, Di.shape[0], "DᵢDᵢᵀ")
+    if not s.v_std > 0:
+        raise ScenarioError(src, "sensors.v_std", f"must be > 0, got {s.v_std}")
+
+
+def _check_sensors(sc: Scenario) -> None:
+    src, s, t = sc.source, sc.sensors, sc.target
+    if s.n < 1:
+        raise ScenarioError(src, "sensors.n", f"need at least one sensor, got {s.n}")
+    _check_measurements(sc)
     if s.positions is not None:
-        _shape(src, "sensors.positions", s.positions, (s.n, np.shape(s.positions)[1]), "n rows")
+        check_shape(src, "sensors.positions", s.positions, (s.n, np.shape(s.positions)[1]), "n rows")
         if np.shape(s.positions)[1] not in (1, 2, 3):
             raise ScenarioError(src, "sensors.positions", "positions must be 1-, 2- or 3-D")
     if s.motion == "flocking":
@@ -537,6 +413,11 @@ def validate(sc: Scenario) -> Scenario:
                                 "and velocity", "use motion = \"static\" or a double_integrator target")
         if s.positions is not None and np.shape(s.positions)[1] != t.dim:
             raise ScenarioError(src, "sensors.positions", f"flocking sensors live in the target's {t.dim}-D space")
+
+
+def _check_estimator(sc: Scenario) -> None:
+    """The common keys, then the chosen estimator's own check (its spec)."""
+    src, e, m, n = sc.source, sc.estimator, sc.m, sc.sensors.n
     if e.rounds < 0:
         raise ScenarioError(src, "estimator.rounds", f"must be ≥ 0, got {e.rounds}")
     if e.resilient_f < 0:
@@ -545,90 +426,53 @@ def validate(sc: Scenario) -> Scenario:
         try:
             float(e.eta)
         except ValueError:
-            raise ScenarioError(src, "estimator.eta", f"expected \"1/(dmax+1)\", \"1/dmax\" or a number, got {e.eta!r}") from None
+            raise ScenarioError(src, "estimator.eta", f"expected \"1/(dmax+1)\", \"1/dmax\" or a number, "
+                                f"got {e.eta!r}") from None
     if e.x0 is not None and len(e.x0) != m:
         raise ScenarioError(src, "estimator.x0", f"expected {m} numbers, got {len(e.x0)}")
     if e.x0_offsets is not None:
-        _shape(src, "estimator.x0_offsets", e.x0_offsets, (s.n, m), "one row per sensor")
+        check_shape(src, "estimator.x0_offsets", e.x0_offsets, (n, m), "one row per sensor")
     if e.Q is not None:
-        _shape(src, "estimator.Q", e.Q, (m, m), "filter process noise, m × m")
-        _pd(src, "estimator.Q", e.Q, semi=True)
+        check_covariance(src, "estimator.Q", e.Q, m, "filter process noise, m × m", semi=True)
     if e.P0 is not None:
-        _shape(src, "estimator.P0", e.P0, (m, m), "initial covariance, m × m")
-        _pd(src, "estimator.P0", e.P0)
-    if e.name == "minimax":
-        if e.S is None:
-            raise ScenarioError(src, "estimator.S", "the minimax filter needs S (q × q)",
-                                "add S, or use name = \"kalman\" (the S → ∞ case)")
-        _shape(src, "estimator.S", e.S, (q, q), f"q × q with q = {q}")
-        _pd(src, "estimator.S", e.S)
-    if e.name == "min_energy":
-        if e.rounds != 1:
-            raise ScenarioError(src, "estimator.rounds", "the min_energy filter exchanges once per tick", "rounds = 1")
-        if not e.edges:
-            raise ScenarioError(src, "estimator.edges", "the min_energy design needs the directed edge set",
-                                "edges = [[i, j], …] (node i receives from node j)")
-        for ei, (a, b) in enumerate(e.edges):
-            if not (0 <= a < s.n and 0 <= b < s.n) or a == b:
-                raise ScenarioError(src, f"estimator.edges[{ei}]", f"[{a}, {b}] must join two different sensors",
-                                    f"use ids 0 … {s.n - 1}")
-        if e.W is None or e.F is None:
-            raise ScenarioError(src, "estimator.W" if e.W is None else "estimator.F", "is required by min_energy")
-        if e.P != "consensus":
-            raise ScenarioError(src, "estimator.P", f"only \"consensus\" is supported, got {e.P!r}")
-        if not e.gamma2_factor > 1:
-            raise ScenarioError(src, "estimator.gamma2_factor", "Theorem 2 needs γ² > γ*²", "e.g. 1.1")
-        if e.substeps < 1:
-            raise ScenarioError(src, "estimator.substeps", "must be ≥ 1")
-        if e.zbar_min < 0 or not e.margin > 0 or e.channel_noise_std < 0:
-            raise ScenarioError(src, "estimator.zbar_min", "zbar_min ≥ 0, margin > 0 and channel_noise_std ≥ 0")
-        if t.model != "continuous":
-            raise ScenarioError(src, "target.model", "the min_energy filter runs on a continuous-time plant",
-                                "model = \"continuous\"")
-    if e.name == "hinf_switching":
-        if e.R_design is not None:
-            _shape(src, "estimator.R_design", e.R_design, (q, q), "design weight R of ARE (9)")
-            _pd(src, "estimator.R_design", e.R_design)
-        if e.Q_design is not None:
-            _shape(src, "estimator.Q_design", e.Q_design, (m, m), "design weight Q of ARE (9)")
-            _pd(src, "estimator.Q_design", e.Q_design)
-        if e.comm_noise is not None:
-            _shape(src, "estimator.comm_noise", e.comm_noise, (q, q), "covariance of the neighbour-term noise")
-            _pd(src, "estimator.comm_noise", e.comm_noise, semi=True)
-        if not e.gamma >= 0:
-            raise ScenarioError(src, "estimator.gamma", "γ must be ≥ 0")
-        if tp.kind == "range" and e.lambda0 is None:
-            raise ScenarioError(src, "estimator.lambda0", "a range topology has no finite list of graphs to take "
-                                "λ₀ from", "give lambda0 (a lower bound on λ_min(L + B)) or use a schedule")
+        check_covariance(src, "estimator.P0", e.P0, m, "initial covariance, m × m")
+    if sc.uav is None:
+        spec_of(e.name).check(sc, e.params)
+
+
+def _check_graph(sc: Scenario, gi: int, g: GraphCfg) -> None:
+    src, n, key = sc.source, sc.sensors.n, f"topology.graphs[{gi}]"
+    if len(g.b) != n:
+        raise ScenarioError(src, f"{key}.b", f"expected {n} visibility weights (one per sensor), got {len(g.b)}")
+    if any(v < 0 for v in g.b):
+        raise ScenarioError(src, f"{key}.b", "visibility weights must be ≥ 0")
+    for ei, (a, bb) in enumerate(g.edges):
+        if not (0 <= a < n and 0 <= bb < n) or a == bb:
+            raise ScenarioError(src, f"{key}.edges[{ei}]", f"edge [{a}, {bb}] must join two different "
+                                f"sensors in 0..{n - 1}", "use sensor ids 0 … n−1 and no self-loops")
+    if g.weights is not None and len(g.weights) != len(g.edges):
+        raise ScenarioError(src, f"{key}.weights", "expected one weight per edge")
+
+
+def _check_topology(sc: Scenario) -> None:
+    src, tp = sc.source, sc.topology
     if tp.kind == "range":
         if not tp.range > 0:
             raise ScenarioError(src, "topology.range", f"must be > 0, got {tp.range}")
-    else:
-        if not tp.graphs:
-            raise ScenarioError(src, "topology.graphs", "a schedule needs at least one [[topology.graphs]]")
-        if tp.dwell_ticks < 1:
-            raise ScenarioError(src, "topology.dwell_ticks", f"must be ≥ 1, got {tp.dwell_ticks}")
-        for gi, g in enumerate(tp.graphs):
-            key = f"topology.graphs[{gi}]"
-            if len(g.b) != s.n:
-                raise ScenarioError(src, f"{key}.b", f"expected {s.n} visibility weights (one per sensor), got {len(g.b)}")
-            if any(v < 0 for v in g.b):
-                raise ScenarioError(src, f"{key}.b", "visibility weights must be ≥ 0")
-            for ei, (a, bb) in enumerate(g.edges):
-                if not (0 <= a < s.n and 0 <= bb < s.n) or a == bb:
-                    raise ScenarioError(src, f"{key}.edges[{ei}]", f"edge [{a}, {bb}] must join two different "
-                                        f"sensors in 0..{s.n - 1}", "use sensor ids 0 … n−1 and no self-loops")
-            if g.weights is not None and len(g.weights) != len(g.edges):
-                raise ScenarioError(src, f"{key}.weights", "expected one weight per edge")
-        if not any(v > 0 for g in tp.graphs for v in g.b):
-            raise ScenarioError(src, "topology.graphs", "no graph of the schedule lets any sensor see the target "
-                                "(every b is 0), so no estimator can track it",
-                                "give at least one sensor b > 0 in some graph")
-    _validate_faults(sc)
-    return sc
+        return
+    if not tp.graphs:
+        raise ScenarioError(src, "topology.graphs", "a schedule needs at least one [[topology.graphs]]")
+    if tp.dwell_ticks < 1:
+        raise ScenarioError(src, "topology.dwell_ticks", f"must be ≥ 1, got {tp.dwell_ticks}")
+    for gi, g in enumerate(tp.graphs):
+        _check_graph(sc, gi, g)
+    if not any(v > 0 for g in tp.graphs for v in g.b):
+        raise ScenarioError(src, "topology.graphs", "no graph of the schedule lets any sensor see the target "
+                            "(every b is 0), so no estimator can track it",
+                            "give at least one sensor b > 0 in some graph")
 
 
-def _validate_faults(sc: Scenario) -> None:
+def _check_faults(sc: Scenario) -> None:
     src, fc, n = sc.source, sc.faults, sc.sensors.n
     if not 0.0 <= fc.link_loss <= 1.0:
         raise ScenarioError(src, "faults.link_loss", f"a probability in [0, 1] is expected, got {fc.link_loss}")
@@ -682,7 +526,7 @@ def validate_fault_event(e: FaultEventCfg, n: int, src: str, key: str, n_meas: i
 def parse_fault_event(table: dict, n: int, src: str = "control/inject", key: str = "inject",
                       n_meas: int | None = None) -> FaultEventCfg:
     """One fault event from a plain table (keys of :class:`FaultEventCfg`), typed and validated."""
-    e = _build(FaultEventCfg, table, src, key)
+    e = build_table(FaultEventCfg, table, src, key)
     validate_fault_event(e, n, src, key, n_meas)
     return e
 
@@ -724,38 +568,94 @@ def parse_uav_scenario(data: dict, source: str) -> Scenario:
                            positions=[[0.0, 0.0]] * n, motion="static"),
         estimator=EstimatorCfg(name="none", rounds=0),
         topology=TopologyCfg(kind="schedule", dwell_ticks=1, graphs=[GraphCfg(edges=[], b=[1.0] * n)]),
-        source=source, uav=cfg)
+        source=source, uav=cfg, data=data)
     if sc.run.mode not in ("lockstep", "realtime"):
         raise ScenarioError(source, "run.mode", f"expected \"lockstep\" or \"realtime\", got {sc.run.mode!r}")
     return validate(sc)
 
 
-def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:
+def _estimator_section(table: Any, source: str) -> EstimatorCfg:
+    """``[estimator]``: the common keys, and the rest handed to the chosen estimator's spec."""
+    table = {} if table is None else table
+    if not isinstance(table, dict):
+        raise ScenarioError(source, "estimator", f"expected a table, got {table!r}", "write [estimator] as a TOML table")
+    name, known = table.get("name", default_name()), estimator_names()
+    if name not in known:
+        hint = did_you_mean(name, known, quote="'") if isinstance(name, str) else ""
+        raise ScenarioError(source, "estimator.name", f"expected one of {', '.join(map(repr, known))}, got {name!r}",
+                            f"{hint}write estimator.name as one of {', '.join(map(repr, known))}")
+    own = set(spec_of(name).param_names())
+    others = {k for nm in known for k in spec_of(nm).param_names()} - own   # kept for a switch of name (sweeps)
+    common = build_table(EstimatorCommon, {k: v for k, v in table.items() if k not in own | others}, source,
+                         "estimator", also_known=own | others)
+    params = build_table(spec_of(name).params, {k: v for k, v in table.items() if k in own}, source, "estimator")
+    kw = {f.name: getattr(common, f.name) for f in fields(EstimatorCommon)}
+    return EstimatorCfg(**{**kw, "name": name}, params=params)
+
+
+def parse_scenario(data: Mapping[str, Any], source: str = "<scenario>") -> Scenario:
     """Build and validate a scenario from an already-parsed TOML mapping."""
     if "uavs" in data:
-        return parse_uav_scenario(data, source)
+        return parse_uav_scenario(dict(data), source)
     for k in data:
         if k not in _SECTIONS:
             raise ScenarioError(source, k, "unknown table", f"{did_you_mean(k, _SECTIONS)}use one of: {', '.join(_SECTIONS)}")
     for k in _REQUIRED:
         if k not in data:
             raise ScenarioError(source, k, "table is required", f"add a [{k}] table")
-    kw = {name: _build(cls, data[name], source, name) for name, cls in _SECTIONS.items() if name in data}
-    return validate(Scenario(source=source, **kw))
+    kw = {name: build_table(cls, data[name], source, name, required=_REQUIRED_KEYS.get(name, ()))
+          for name, cls in _SECTIONS.items() if name in data and cls is not EstimatorCfg}
+    kw["estimator"] = _estimator_section(data.get("estimator"), source)
+    return validate(Scenario(source=source, data=data, **kw))
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a TOML scenario file."""
-    path = Path(path)
+def _read_toml(path: Path) -> dict:
     try:
         text = path.read_text()
     except OSError as exc:
         raise ScenarioError(str(path), "-", f"cannot read the file ({exc.strerror})", "check the path") from None
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(str(path), "-", f"is not valid TOML ({exc})", "fix the TOML syntax") from None
-    return parse_scenario(data, str(path))
 
 
-_ = MISSING  # keep import for dataclass introspection users
+def toml_value(text: str) -> Any:
+    """A ``--set`` value as TOML (``3``, ``[[1.0]]``, ``"x"``); text that is not TOML stays a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def override(data: Mapping[str, Any], dotted: Mapping[str, Any]) -> dict:
+    """A copy of the TOML mapping ``data`` with ``{"section.key": value}`` set (None values skipped)."""
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items()}
+    for key, value in dotted.items():
+        if value is not None:
+            sect, _, name = key.partition(".")
+            out.setdefault(sect, {})[name] = value
+    return out
+
+
+def parse_sets(sets: Iterable[str], source: str) -> dict[str, Any]:
+    """``["section.key=value", …]`` (TOML values) as ``{"section.key": value}``."""
+    out: dict[str, Any] = {}
+    for s in sets:
+        dotted, sep, raw = s.partition("=")
+        if not sep or "." not in dotted:
+            raise ScenarioError(source, s, "override must look like section.key=value", "e.g. --set run.ticks=100")
+        out[dotted] = toml_value(raw)
+    return out
+
+
+def scenario_data(path: str | Path, sets: Iterable[str] = (), **named: Any) -> dict:
+    """The scenario file's TOML mapping with ``--set section.key=value`` overrides (TOML values) and
+    ``named`` ones (``{"run.ticks": 10}``; None = not given) applied."""
+    data = _read_toml(Path(path))
+    return override(override(data, parse_sets(sets, str(path))), named)
+
+
+def load_scenario(path: str | Path, sets: Iterable[str] = (), **named: Any) -> Scenario:
+    """Read a TOML scenario file, apply overrides (as :func:`scenario_data`), validate once."""
+    return parse_scenario(scenario_data(path, sets, **named), str(path))

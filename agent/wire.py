@@ -23,7 +23,9 @@ key                        type          published by
 :func:`decode` validates everything it returns: field types, array shapes and sizes, finite values,
 and that the sender named in the message owns the key it came on. A bad message raises
 :class:`WireError` whose ``reason`` is a short stable label; buses drop such messages and count them
-per reason — they never reach a role.
+per reason — they never reach a role. A ``Control``'s arguments are typed, once, for the use they have:
+:func:`fault_event` (a fault-plan transition on ``world/event``, a launcher ack) and :func:`command` (a
+``control/<verb>``) return frozen dataclasses or raise :class:`WireError`; roles never re-check them.
 
 Arrays travel as ``{"s": shape, "d": little-endian float64 bytes}`` so that a round trip is
 bit-exact (lockstep over Zenoh must give the same numbers as in-process).
@@ -389,6 +391,203 @@ def control_args(items: list[str] | str) -> dict[str, Any]:
     return out
 
 
+# --------------------------------------------------------------------------- typed control arguments
+# A Control's args are a flat map of scalars and number lists (above). What each use needs of them is
+# checked here, once, into frozen dataclasses: the fault plan's transitions (:func:`fault_event`) and the
+# control verbs (:func:`command`). Roles and the world read typed fields; they never re-check.
+
+#: fault kinds of the plan (topology/faults.py), the choices of their parameters and the bounds of their
+#: delays: the one copy (a scenario's ``[[faults.events]]`` must stay within the same bounds)
+FAULT_KINDS = ("link_loss", "delay", "duplicate", "reorder", "partition", "crash", "pause", "router_restart",
+               "byzantine", "outliers", "blind", "noise", "evade")
+FAULT_DIRECTIONS = ("both", "in", "out")
+BYZANTINE_MODES = ("nan", "huge", "stale", "bias")
+FAULT_LIMITS = {"delay_ticks": 1000, "jitter_ticks": 1000, "delay_ms": 60_000.0, "jitter_ms": 60_000.0}
+MAX_BURST_TICKS = 10_000         #: control/outlier_burst ticks
+MAX_INJECT_TICKS = 10**7         #: control/inject duration
+
+_INF = math.inf
+#: the number parameters of a fault event and their ranges
+_FAULT_NUMBERS = {"p": (0.0, 1.0), "delay_ms": (0.0, FAULT_LIMITS["delay_ms"]),
+                  "jitter_ms": (0.0, FAULT_LIMITS["jitter_ms"]), "magnitude": (-_INF, _INF),
+                  "noise_scale": (-_INF, _INF), "accel": (-_INF, _INF)}
+
+
+def _whole(v: Any, name: str, lo: int, hi: int) -> int:
+    """An integer in [lo, hi]; a Control arg may carry it as a float (list items always do)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v) \
+            or not lo <= v <= hi:
+        raise WireError("bad_field", f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
+    return int(v)
+
+
+def _wholes(v: Any, name: str, lo: int, hi: int) -> tuple[int, ...]:
+    return tuple(_whole(x, f"{name}[]", lo, hi) for x in _list(v, name))
+
+
+def _number(v: Any, name: str, lo: float = -_INF, hi: float = _INF) -> float:
+    x = _float(v, name)
+    if not lo <= x <= hi:
+        raise WireError("bad_field", f"{name} must be in [{lo:g}, {hi:g}], got {v!r}")
+    return x
+
+
+def _choice(v: Any, name: str, choices: tuple[str, ...]) -> str:
+    if not isinstance(v, str) or v not in choices:
+        raise WireError("bad_field", f"{name} must be one of {', '.join(choices)}, got {v!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    """A fault-plan transition: the world's ``world/event`` (verb ``fault``; the args of topology/faults.py
+    ``ActiveFault.event_args``) or the launcher's ``launcher/event`` (verb ``ack``: id, kind, phase, agents).
+    Parameters a message leaves out take the defaults below."""
+
+    id: int
+    kind: str
+    phase: str                                   #: "start" | "heal"
+    agents: tuple[int, ...] = ()
+    links: tuple[tuple[int, int], ...] = ()      #: the wire's flat [a, b, a, b, …], as pairs
+    groups: tuple[int, ...] | None = None
+    p: float = 1.0
+    direction: str = "both"
+    delay_ticks: int = 1
+    jitter_ticks: int = 0
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0
+    mode: str | None = None
+    bias: tuple[float, ...] | None = None
+    magnitude: float = 50.0
+    noise_scale: float = 1.0
+    accel: float = 2.0
+
+
+def fault_event(args: dict[str, Any], n: int = MAX_LIST_LEN) -> FaultEvent:
+    """The :class:`FaultEvent` of a Control's ``args`` (agent ids below ``n``). Raises :class:`WireError`
+    (``bad_field``, the detail naming the argument) on anything malformed."""
+    a = args
+    flat = _wholes(a.get("links", []), "links", 0, n - 1)
+    if len(flat) % 2:
+        raise WireError("bad_field", "links must be pairs a, b, a, b, …")
+    kw: dict[str, Any] = {name: _number(a[name], name, lo, hi) for name, (lo, hi) in _FAULT_NUMBERS.items()
+                          if name in a}
+    kw.update({name: _whole(a[name], name, 0, FAULT_LIMITS[name]) for name in ("delay_ticks", "jitter_ticks")
+               if name in a})
+    if a.get("groups") is not None:
+        kw["groups"] = _wholes(a["groups"], "groups", 0, 2**31)
+    if a.get("bias") is not None:
+        kw["bias"] = tuple(_float(b, "bias[]") for b in _list(a["bias"], "bias"))
+    if a.get("mode") is not None:
+        kw["mode"] = _choice(a["mode"], "mode", BYZANTINE_MODES)
+    return FaultEvent(id=_whole(a.get("id"), "id", 0, 2**53), kind=_choice(a.get("kind"), "kind", FAULT_KINDS),
+                      phase=_choice(a.get("phase"), "phase", ("start", "heal")),
+                      agents=_wholes(a.get("agents", []), "agents", 0, n - 1), links=tuple(zip(flat[::2], flat[1::2])),
+                      direction=_choice(a.get("direction", "both"), "direction", FAULT_DIRECTIONS), **kw)
+
+
+@dataclass(frozen=True)
+class Command:
+    """A ``control/<verb>`` command with its arguments checked (:func:`command`). pause, resume and heal
+    take none; the other verbs are the subclasses below."""
+
+    verb: str
+
+
+@dataclass(frozen=True)
+class Step(Command):
+    n: int = 1                   #: ticks to run, then pause again (≥ 1)
+
+
+@dataclass(frozen=True)
+class Speed(Command):
+    factor: float = 1.0          #: realtime pace: T / factor seconds per tick (> 0)
+
+
+@dataclass(frozen=True)
+class LinkEdit(Command):
+    a: int = 0                   #: link_drop / link_heal: the link a–b (a ≠ b)
+    b: int = 0
+
+
+@dataclass(frozen=True)
+class LinkLoss(Command):
+    p: float = 0.0               #: every link lost with probability p per tick
+
+
+@dataclass(frozen=True)
+class Partition(Command):
+    groups: tuple[int, ...] = ()  #: a group id per sensor; links between groups are cut
+
+
+@dataclass(frozen=True)
+class Inject(Command):
+    event: dict[str, Any] = field(default_factory=dict)   #: a [[faults.events]] entry (typed by the scenario schema)
+    ticks: int | None = None     #: its duration (None: until healed)
+
+
+@dataclass(frozen=True)
+class HealFault(Command):
+    id: int = 0                  #: the live fault to heal (the id its inject was acknowledged with)
+
+
+@dataclass(frozen=True)
+class OutlierBurst(Command):
+    agent: int = -1              #: the sensor (−1: every sensor)
+    ticks: int = 1               #: impulsive outliers on its next ``ticks`` measurements ...
+    magnitude: float = 0.0       #: ... of this norm
+
+
+def _inject(verb: str, a: dict[str, Any]) -> Inject:
+    ticks = a.get("ticks")
+    if ticks is not None and (isinstance(ticks, bool) or not isinstance(ticks, (int, float))
+                              or not 1 <= ticks <= MAX_INJECT_TICKS):
+        raise WireError("bad_field",
+                        f"inject.ticks: the fault's duration must be a number of ticks ≥ 1, got {ticks!r}")
+    event = {k: v for k, v in a.items() if k not in ("ticks", "id", "start", "heal")}
+    for k in ("delay_ticks", "jitter_ticks"):   # integers in a Control may come as floats
+        if isinstance(event.get(k), float) and event[k].is_integer():
+            event[k] = int(event[k])
+    return Inject(verb, event, None if ticks is None else int(ticks))
+
+
+def command(verb: str, args: dict[str, Any], n: int = MAX_LIST_LEN) -> Command:
+    """The typed command of ``control/<verb>`` with ``args``, for a flock of ``n`` sensors. Raises
+    :class:`WireError`: ``unknown_verb`` (kill and restart are the launcher's, it reads them itself), or
+    ``bad_field`` with a detail that says which argument is wrong and why."""
+    a = args
+    if verb in ("pause", "resume", "heal"):
+        return Command(verb)
+    if verb == "step":
+        return Step(verb, max(1, _whole(a.get("n") or 1, "n", -2**53, 2**53)))
+    if verb == "speed":
+        f = _float(a.get("factor"), "factor")
+        if not f > 0:
+            raise WireError("bad_field", f"factor must be > 0, got {f!r}")
+        return Speed(verb, f)
+    if verb in ("link_drop", "link_heal"):
+        ab = _whole(a.get("a"), "a", 0, n - 1), _whole(a.get("b"), "b", 0, n - 1)
+        if ab[0] == ab[1]:
+            raise WireError("bad_field", "a and b must be two different sensors")
+        return LinkEdit(verb, *ab)
+    if verb == "link_loss":
+        return LinkLoss(verb, _number(a.get("p"), "p", 0.0, 1.0))
+    if verb == "partition":
+        groups = _wholes(a.get("groups"), "groups", 0, 2**31)
+        if len(groups) != n:
+            raise WireError("bad_field", f"groups must give a group id to each of the {n} sensors")
+        return Partition(verb, groups)
+    if verb == "inject":
+        return _inject(verb, a)
+    if verb == "heal_fault":
+        return HealFault(verb, _whole(a.get("id"), "id", 0, 2**53))
+    if verb == "outlier_burst":
+        return OutlierBurst(verb, _whole(a.get("agent", -1), "agent", -1, 2**53),
+                            _whole(a.get("ticks", 1), "ticks", 0, MAX_BURST_TICKS),
+                            _float(a.get("magnitude", 0.0), "magnitude"))
+    raise WireError("unknown_verb", verb)
+
+
 @dataclass
 class End(Message):
     """World → all: the run is over after ``k`` ticks (``reason``: "done", "stopped")."""
@@ -502,6 +701,17 @@ def peek(data: bytes, names: tuple[str, ...] = ("k", "r"), max_fields: int = 6) 
         return out
     except Exception:
         return {}
+
+
+def peek_round(key: str, data: bytes) -> tuple[int, int, int] | None:
+    """(sender, k, r) of an exchange payload on ``agent/<sender>/xchg``, read without decoding it (see
+    :func:`peek`); None when unsure."""
+    try:
+        j = int(key.split("/")[1])
+    except (IndexError, ValueError):
+        return None
+    h = peek(data)
+    return (j, h["k"], h["r"]) if "k" in h and "r" in h else None
 
 
 def key_for(msg: Message, role: str) -> str:

@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 from agent import wire  # noqa: E402
 from agent.scenario import parse_scenario  # noqa: E402
-from flocktrack.cli import scenario_data  # noqa: E402
+from agent.scenario import scenario_data  # noqa: E402
 from flocktrack.launch import free_port, open_router  # noqa: E402
 from flocktrack.record import read_recording  # noqa: E402
 from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir  # noqa: E402

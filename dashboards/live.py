@@ -40,8 +40,6 @@ log = logging.getLogger(__name__)
 #: delivered out of order (measured: an estimate of tick k after the world's tick k+2), samples of one
 #: subscription keep the publication order — and the model relies on it to score a tick in time.
 SUBSCRIPTION = "**"
-CONTROL_VERBS = ("pause", "resume", "step", "speed", "kill", "restart", "link_drop", "link_heal", "link_loss",
-                 "partition", "heal", "outlier_burst", "inject", "heal_fault")
 
 
 # ============================================================================ recordings (replay)
@@ -156,7 +154,7 @@ def replay_model_from_file(path: str | Path, trail_len: int = 200) -> ReplayMode
 # ============================================================================ the Viser UI
 
 @dataclass
-class _ClientView:
+class ClientView:
     """The camera of one browser tab, as far as following the flock goes."""
 
     look_at: np.ndarray | None = None           #: the look-at point last commanded (None: never yet)
@@ -229,7 +227,7 @@ class DashboardUI:
         self.controls_sent: list[tuple[str, dict]] = []
         # the camera: per browser tab, framed on the flock and gliding after it while "Follow" is on
         self.follow = True
-        self._views: dict[int, _ClientView] = {}
+        self._views: dict[int, ClientView] = {}
         self._framing: plots.Framing | None = None
         self._cam_lock = threading.RLock()
         self._view_t = time.monotonic()
@@ -308,6 +306,11 @@ class DashboardUI:
             self.select(i)
 
     _last_snapshot: Snapshot | None = None
+
+    @property
+    def last_scene_k(self) -> int | None:
+        """The tick the scene shows (None: none drawn yet)."""
+        return self._last_scene_k
 
     def select(self, i: int | None) -> None:
         with self._lock:
@@ -397,7 +400,7 @@ class DashboardUI:
     def _on_connect(self, client) -> None:
         """A new tab: it gets the framing at once (at the next update), and its camera reports are watched
         for the user's own moves."""
-        view = _ClientView()
+        view = ClientView()
         # the page reports its default pose first, then the server's initial camera (applied after its first
         # frames, possibly after our first command): both are ours, not the user's
         ic = self.server.initial_camera
@@ -502,7 +505,7 @@ class DashboardUI:
                         continue
                 self._command(client, view, L, d)
 
-    def _command(self, client, view: _ClientView, L: np.ndarray, d: float) -> None:
+    def _command(self, client, view: ClientView, L: np.ndarray, d: float) -> None:
         cam = client.camera
         P = L - view.direction * d
         prev_P, prev_L = np.array(cam.position, float), np.array(cam.look_at, float)
@@ -599,7 +602,9 @@ class DashboardUI:
             self.g_inspect.content = text
 
     # ------------------------------------------------------------------ GUI
-    def _control(self, verb: str, **args) -> None:
+    def control(self, verb: str, **args) -> None:
+        """Send ``control/<verb>`` with ``args`` (what the buttons do); recorded in ``controls_sent``.
+        Nothing in replay."""
         if self.send_control is None:
             return
         self.controls_sent.append((verb, args))
@@ -616,10 +621,28 @@ class DashboardUI:
         args.update(kind=self.g_inj_kind.value, targets=self.g_inj_targets.value.strip())
         if int(self.g_inj_ticks.value) > 0:
             args["ticks"] = int(self.g_inj_ticks.value)
-        self._control("inject", **args)
+        self.control("inject", **args)
         return True
 
     def _build_gui(self) -> None:
+        """The control panel (docked right), top to bottom: status, run control (live) or replay, view,
+        inspect, faults and planned faults (live), display; then the plots panel (docked left). Each panel
+        has its own builder; the order of the calls is the order on the page."""
+        self._gui_frame()
+        if self.live:
+            self._gui_run_control()
+        else:
+            self._gui_replay()
+        self._gui_view()
+        self._gui_inspect()
+        if self.live:
+            self._gui_faults()
+            self._gui_plan_fault()
+        self._gui_display()
+        self._gui_plots_panel()
+
+    def _gui_frame(self) -> None:
+        """The theme, the docked control panel, the plot bookkeeping and the status line at its top."""
         gui = self.server.gui
         gui.configure_theme(control_width="large", show_share_button=False, show_logo=False,
                             brand_color=(40, 90, 160))
@@ -632,57 +655,63 @@ class DashboardUI:
         self.h_plots: dict = {}
         self._plot_order = {k: 100 + i for i, k in enumerate(["errors", "tmsee", "disagreement", "lambda2", "rates"])}
         self.g_status = gui.add_markdown("waiting for the first tick …")
-        n = self.info.n
-        ids = [str(i) for i in range(n)] or ["0"]
 
-        if self.live:
-            with gui.add_folder("Run control"):
-                bg = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
-                self.g_step_n = gui.add_number("Step ticks", 1, min=1, max=10_000, step=1)
-                self.g_speed = gui.add_slider("Speed ×", 0.05, 4.0, 0.05, min(4.0, max(0.05, round(self.info.speed, 2))),
-                                              hint="realtime factor (control/speed)")
+    def _gui_run_control(self) -> None:
+        """Live: pause / resume / step n ticks, and the realtime factor (control/pause, resume, step, speed)."""
+        gui = self.server.gui
+        with gui.add_folder("Run control"):
+            bg = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
+            self.g_step_n = gui.add_number("Step ticks", 1, min=1, max=10_000, step=1)
+            self.g_speed = gui.add_slider("Speed ×", 0.05, 4.0, 0.05, min(4.0, max(0.05, round(self.info.speed, 2))),
+                                          hint="realtime factor (control/speed)")
 
-                @bg.on_click
-                def _(event) -> None:
-                    v = event.target.value
-                    if v == "Pause":
-                        self._control("pause")
-                    elif v == "Resume":
-                        self._control("resume")
-                    elif v == "Step":
-                        self._control("step", n=int(self.g_step_n.value))
+            @bg.on_click
+            def _(event) -> None:
+                v = event.target.value
+                if v == "Pause":
+                    self.control("pause")
+                elif v == "Resume":
+                    self.control("resume")
+                elif v == "Step":
+                    self.control("step", n=int(self.g_step_n.value))
 
-                @self.g_speed.on_update
-                def _(event) -> None:
-                    if event.client is not None:
-                        self._control("speed", factor=float(self.g_speed.value))
-        else:
-            rp = self.replay
-            with gui.add_folder("Replay"):
-                self.g_slider = gui.add_slider("Tick", rp.first if rp else 0, max(rp.last if rp else 1, 1), 1,
-                                               rp.first if rp else 0)
-                bg = gui.add_button_group("Playback", ("Play", "Pause", "First", "Last"))
-                self.g_play_speed = gui.add_slider("Playback ×", 0.1, 10.0, 0.1, 1.0)
+            @self.g_speed.on_update
+            def _(event) -> None:
+                if event.client is not None:
+                    self.control("speed", factor=float(self.g_speed.value))
 
-                @self.g_slider.on_update
-                def _(event) -> None:
-                    self.replay_k = int(self.g_slider.value)
-                    self.dirty = True
+    def _gui_replay(self) -> None:
+        """Replay: the tick slider, play / pause / first / last, and the playback speed."""
+        gui = self.server.gui
+        rp = self.replay
+        with gui.add_folder("Replay"):
+            self.g_slider = gui.add_slider("Tick", rp.first if rp else 0, max(rp.last if rp else 1, 1), 1,
+                                           rp.first if rp else 0)
+            bg = gui.add_button_group("Playback", ("Play", "Pause", "First", "Last"))
+            self.g_play_speed = gui.add_slider("Playback ×", 0.1, 10.0, 0.1, 1.0)
 
-                @bg.on_click
-                def _(event) -> None:
-                    v = event.target.value
-                    if v == "Play":
-                        self.playing = True
-                    elif v == "Pause":
-                        self.playing = False
-                    elif v == "First" and self.replay:
-                        self.playing = False
-                        self.g_slider.value = self.replay.first
-                    elif v == "Last" and self.replay:
-                        self.playing = False
-                        self.g_slider.value = self.replay.last
+            @self.g_slider.on_update
+            def _(event) -> None:
+                self.replay_k = int(self.g_slider.value)
+                self.dirty = True
 
+            @bg.on_click
+            def _(event) -> None:
+                v = event.target.value
+                if v == "Play":
+                    self.playing = True
+                elif v == "Pause":
+                    self.playing = False
+                elif v == "First" and self.replay:
+                    self.playing = False
+                    self.g_slider.value = self.replay.first
+                elif v == "Last" and self.replay:
+                    self.playing = False
+                    self.g_slider.value = self.replay.last
+
+    def _gui_view(self) -> None:
+        """The camera: follow the flock (on until the user moves the camera), and reset the framing."""
+        gui = self.server.gui
         with gui.add_folder("View"):
             self.g_follow = gui.add_checkbox("Follow the flock", True,
                                              hint="keep the camera on the flock (moving the camera stops it)")
@@ -690,6 +719,10 @@ class DashboardUI:
             self.g_follow.on_update(lambda _e: self._set_follow(bool(self.g_follow.value)))
             b_reset.on_click(lambda _e: self.reset_view())
 
+    def _gui_inspect(self) -> None:
+        """The selected sensor (also set by clicking it in the scene), its covariance ellipse and its text."""
+        gui = self.server.gui
+        ids = [str(i) for i in range(self.info.n)] or ["0"]
         with gui.add_folder("Inspect"):
             self.g_node = gui.add_dropdown("Sensor", ids, initial_value=ids[0])
             self.g_ellipse = gui.add_checkbox("Covariance ellipse", True)
@@ -711,66 +744,75 @@ class DashboardUI:
                     for h in (self.g_kill_id, self.g_link_a):
                         h.value = i
 
-        if self.live:
-            with gui.add_folder("Faults (control/**)"):
-                self.g_kill_id = gui.add_number("Sensor id", 0, min=0, max=max(n - 1, 0), step=1)
-                kb = gui.add_button_group("Process", ("Kill sensor", "Restart sensor"))
-                self.g_link_a = gui.add_number("Link a", 0, min=0, max=max(n - 1, 0), step=1)
-                self.g_link_b = gui.add_number("Link b", 1 if n > 1 else 0, min=0, max=max(n - 1, 0), step=1)
-                lb = gui.add_button_group("Link", ("Drop link", "Heal link"))
-                self.g_loss = gui.add_slider("Link loss p", 0.0, 1.0, 0.05, 0.0)
-                b_loss = gui.add_button("Set link loss")
-                pb = gui.add_button_group("Flock", ("Partition", "Heal all"))
-                self.g_burst_agent = gui.add_number("Outlier sensor (−1 = all)", -1, min=-1, max=max(n - 1, 0), step=1)
-                self.g_burst_ticks = gui.add_number("Outlier ticks", 20, min=1, max=100_000, step=1)
-                self.g_burst_mag = gui.add_number("Outlier magnitude", 5.0, min=0.0, max=1e6, step=0.5)
-                b_burst = gui.add_button("Inject outlier burst")
-            with gui.add_folder("Plan fault (control/inject)", expand_by_default=False):
-                from agent.scenario import FAULT_KINDS
+    def _gui_faults(self) -> None:
+        """Live: kill / restart a sensor, drop / heal a link, link loss, partition / heal the flock, and an
+        outlier burst (control/kill, restart, link_drop, link_heal, link_loss, partition, heal, outlier_burst)."""
+        gui = self.server.gui
+        top = max(self.info.n - 1, 0)
+        with gui.add_folder("Faults (control/**)"):
+            self.g_kill_id = gui.add_number("Sensor id", 0, min=0, max=top, step=1)
+            kb = gui.add_button_group("Process", ("Kill sensor", "Restart sensor"))
+            self.g_link_a = gui.add_number("Link a", 0, min=0, max=top, step=1)
+            self.g_link_b = gui.add_number("Link b", 1 if self.info.n > 1 else 0, min=0, max=top, step=1)
+            lb = gui.add_button_group("Link", ("Drop link", "Heal link"))
+            self.g_loss = gui.add_slider("Link loss p", 0.0, 1.0, 0.05, 0.0)
+            b_loss = gui.add_button("Set link loss")
+            pb = gui.add_button_group("Flock", ("Partition", "Heal all"))
+            self.g_burst_agent = gui.add_number("Outlier sensor (−1 = all)", -1, min=-1, max=top, step=1)
+            self.g_burst_ticks = gui.add_number("Outlier ticks", 20, min=1, max=100_000, step=1)
+            self.g_burst_mag = gui.add_number("Outlier magnitude", 5.0, min=0.0, max=1e6, step=0.5)
+            b_burst = gui.add_button("Inject outlier burst")
 
-                self.g_inj_kind = gui.add_dropdown("Kind", FAULT_KINDS, initial_value="delay")
-                self.g_inj_targets = gui.add_text("Targets", "agents:0")
-                self.g_inj_params = gui.add_text("Parameters", "delay_ms=80 jitter_ms=20 direction=in")
-                self.g_inj_ticks = gui.add_number("Ticks (0 = until healed)", 100, min=0, max=10**7, step=1)
-                b_inj = gui.add_button("Inject")
-                self.g_inj_id = gui.add_number("Live fault id", 1000, min=1000, max=10**6, step=1)
-                b_heal_one = gui.add_button("Heal this fault")
+        @kb.on_click
+        def _(event) -> None:
+            verb = "kill" if event.target.value == "Kill sensor" else "restart"
+            self.control(verb, agent=int(self.g_kill_id.value))
 
-                b_inj.on_click(lambda _e: self.inject_from_form())
+        @lb.on_click
+        def _(event) -> None:
+            verb = "link_drop" if event.target.value == "Drop link" else "link_heal"
+            self.control(verb, a=int(self.g_link_a.value), b=int(self.g_link_b.value))
 
-                @b_heal_one.on_click
-                def _(event) -> None:
-                    self._control("heal_fault", id=int(self.g_inj_id.value))
+        @b_loss.on_click
+        def _(event) -> None:
+            self.control("link_loss", p=float(self.g_loss.value))
 
-                @kb.on_click
-                def _(event) -> None:
-                    verb = "kill" if event.target.value == "Kill sensor" else "restart"
-                    self._control(verb, agent=int(self.g_kill_id.value))
+        @pb.on_click
+        def _(event) -> None:
+            if event.target.value == "Partition":
+                self.control("partition", groups=self.partition_groups())
+            else:
+                self.control("heal")
 
-                @lb.on_click
-                def _(event) -> None:
-                    verb = "link_drop" if event.target.value == "Drop link" else "link_heal"
-                    self._control(verb, a=int(self.g_link_a.value), b=int(self.g_link_b.value))
+        @b_burst.on_click
+        def _(event) -> None:
+            self.control("outlier_burst", agent=int(self.g_burst_agent.value),
+                         ticks=int(self.g_burst_ticks.value), magnitude=float(self.g_burst_mag.value))
 
-                @b_loss.on_click
-                def _(event) -> None:
-                    self._control("link_loss", p=float(self.g_loss.value))
+    def _gui_plan_fault(self) -> None:
+        """Live, folded: the "Plan fault" form (control/inject, see :meth:`inject_from_form`) and healing one
+        live fault by its id (control/heal_fault)."""
+        from agent.scenario import FAULT_KINDS
 
-                @pb.on_click
-                def _(event) -> None:
-                    if event.target.value == "Partition":
-                        self._control("partition", groups=self.partition_groups())
-                    else:
-                        self._control("heal")
+        gui = self.server.gui
+        with gui.add_folder("Plan fault (control/inject)", expand_by_default=False):
+            self.g_inj_kind = gui.add_dropdown("Kind", FAULT_KINDS, initial_value="delay")
+            self.g_inj_targets = gui.add_text("Targets", "agents:0")
+            self.g_inj_params = gui.add_text("Parameters", "delay_ms=80 jitter_ms=20 direction=in")
+            self.g_inj_ticks = gui.add_number("Ticks (0 = until healed)", 100, min=0, max=10**7, step=1)
+            b_inj = gui.add_button("Inject")
+            self.g_inj_id = gui.add_number("Live fault id", 1000, min=1000, max=10**6, step=1)
+            b_heal_one = gui.add_button("Heal this fault")
 
-                @b_burst.on_click
-                def _(event) -> None:
-                    self._control("outlier_burst", agent=int(self.g_burst_agent.value),
-                                  ticks=int(self.g_burst_ticks.value), magnitude=float(self.g_burst_mag.value))
+        b_inj.on_click(lambda _e: self.inject_from_form())
+        b_heal_one.on_click(lambda _e: self.control("heal_fault", id=int(self.g_inj_id.value)))
 
+    def _gui_display(self) -> None:
+        """Folded: what the scene shows (links, range circles, estimates, trail) and the error colour scale."""
+        gui = self.server.gui
         with gui.add_folder("Display", expand_by_default=False):
             self.g_links = gui.add_checkbox("Links", True)
-            self.g_circles = gui.add_checkbox("Range circles", n <= 40)
+            self.g_circles = gui.add_checkbox("Range circles", self.info.n <= 40)
             self.g_estimates = gui.add_checkbox("Node estimates", True)
             self.g_trail = gui.add_checkbox("Target trail", True)
             self.g_err_scale = gui.add_number("Error colour scale (0 = auto)", 0.0, min=0.0, step=0.1)
@@ -780,7 +822,9 @@ class DashboardUI:
                              "● sensor  ◆ its estimate  red ball = target (trail)  purple = fusion  \n"
                              "orange = selected sensor's links, blue = its covariance ellipse")
 
-        # the plots, in their own panel docked left
+    def _gui_plots_panel(self) -> None:
+        """The plots, in their own panel docked left (the uPlot panels are added by :meth:`render_plots`)."""
+        gui = self.server.gui
         panel = gui.add_panel()
         self.plot_tab = panel.add_tab("Plots")
         panel.dock_left()
@@ -854,7 +898,7 @@ class LiveDashboard:
 
     def send_control(self, verb: str, args: dict) -> None:
         """Thread-safe: queue a control message for the loop thread to publish."""
-        if verb not in CONTROL_VERBS:
+        if verb not in wire.CONTROL_VERBS:
             raise ValueError(f"unknown control verb {verb!r}")
         self.controls.put((verb, dict(args)))
 
@@ -875,7 +919,7 @@ class LiveDashboard:
             log.info("published control/%s %s", verb, args)
         if self.ui is None:
             return
-        if now >= self._next_scene and (st.shown_k != self.ui._last_scene_k or self.ui.dirty):
+        if now >= self._next_scene and (st.shown_k != self.ui.last_scene_k or self.ui.dirty):
             # at most one redraw per scene_period, and only when there is a new tick (or a GUI change)
             self._next_scene = now + self.scene_period
             self.ui.render_scene(st.snapshot(), st.series(last=200)["err"])

@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tomllib
 from pathlib import Path
 
-from agent.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
+from agent.estimators.registry import names as estimator_names
+from agent.estimators.registry import specs
+from agent.scenario import ScenarioError, load_scenario, parse_scenario, scenario_data
 
 
 class _Parser(argparse.ArgumentParser):
@@ -37,38 +38,6 @@ class _Parser(argparse.ArgumentParser):
             if hint:
                 message = f"{message}; {hint.strip()}"
         super().error(message)
-
-
-def _parse_value(text: str):
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
-
-
-def scenario_data(path: str, sets: list[str], **named) -> dict:
-    """The scenario's TOML mapping with ``section.key=value`` overrides (TOML values) applied."""
-    try:
-        data = tomllib.loads(Path(path).read_text())
-    except (OSError, tomllib.TOMLDecodeError):
-        load_scenario(path)  # raises the precise ScenarioError
-        raise
-    for s in sets:
-        dotted, sep, raw = s.partition("=")
-        if not sep or "." not in dotted:
-            raise ScenarioError(path, s, "override must look like section.key=value", "e.g. --set run.ticks=100")
-        sect, _, key = dotted.partition(".")
-        data.setdefault(sect, {})[key] = _parse_value(raw)
-    for dotted, v in named.items():
-        if v is not None:
-            sect, _, key = dotted.partition(".")
-            data.setdefault(sect, {})[key] = v
-    return data
-
-
-def apply_overrides(path: str, sets: list[str], **named) -> Scenario:
-    """Load a scenario, apply overrides, validate once."""
-    return parse_scenario(scenario_data(path, sets, **named), path)
 
 
 def cmd_validate(args) -> int:
@@ -166,28 +135,27 @@ def cmd_fault(args) -> int:
 
 
 def cmd_design(args) -> int:
-    """Solve (and store) the pre-run design of a scenario (the min_energy SDP (29); Chen's gain K)."""
+    """Solve (and store) the pre-run design of a scenario: its estimator's design hook (an SDP, a gain…)."""
     import json as _json
 
     from .build import design as make_design
 
-    sc = apply_overrides(args.scenario, args.set or [])
+    sc = load_scenario(args.scenario, args.set or [])
     try:
         d = make_design(sc)
     except Exception as exc:  # DesignError (infeasible / inaccurate) and friends: say which, no numbers
         print(f"error: {args.scenario}: design failed: {exc}", file=sys.stderr)
         return 1
-    if sc.estimator.name == "min_energy":
-        out = d["min_energy"]
-        g = out.get("gamma2"), out.get("gamma2_star")
-        print(f"{args.scenario}: γ*² = {g[1]:.6g} (supremum), filters designed at γ² = {g[0]:.6g}")
+    spec = specs()[sc.estimator.name]
+    if spec.report_design is not None:
+        out, line = spec.report_design(d)
     else:
-        out = d
-        print(f"{args.scenario}: {', '.join(sorted(d)) or 'nothing to design'}")
+        out, line = d, ", ".join(sorted(d)) or "nothing to design"
+    print(f"{args.scenario}: {line}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(_json.dumps(out, indent=1))
-    print(f"wrote {args.out}" + (f" — use it with `design_file = \"{args.out}\"` in [estimator]"
-                                 if sc.estimator.name == "min_energy" else ""))
+    stored = "design_file" in spec.param_names()
+    print(f"wrote {args.out}" + (f" — use it with `design_file = \"{args.out}\"` in [estimator]" if stored else ""))
     return 0
 
 
@@ -235,12 +203,12 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--keys", help="key set directory for --secure (default: OUT/keys)")
     r.add_argument("--ticks", type=int)
     r.add_argument("--seed", type=int)
-    r.add_argument("--estimator", choices=["minimax", "kalman", "hinf_switching"])
+    r.add_argument("--estimator", choices=estimator_names())
     r.add_argument("--rounds", type=int)
     r.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
     r.add_argument("--out", help="output directory (default: runs/<scenario>-<YYYYmmdd-HHMMSS>)")
     r.set_defaults(fn=cmd_run)
-    dg = sub.add_parser("design", help="solve and store a scenario's pre-run design (min_energy SDP, Chen's K)")
+    dg = sub.add_parser("design", help="solve and store a scenario's pre-run design (its estimator's design hook)")
     dg.add_argument("scenario")
     dg.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
     dg.add_argument("--out", required=True)
@@ -266,16 +234,12 @@ def main(argv: list[str] | None = None) -> int:
     rp.add_argument("--dashboard-port", type=int, default=8080)
     rp.set_defaults(fn=cmd_replay)
     from . import compose as _compose
+    from . import experiment as _experiment
     from . import keys as _keys
 
     _compose.register(sub)
     _keys.register(sub)
-    try:
-        from . import experiment as _experiment
-
-        _experiment.register(sub)
-    except ImportError:  # pragma: no cover - optional during development
-        pass
+    _experiment.register(sub)
     args = ap.parse_args(argv)
     try:
         return args.fn(args)

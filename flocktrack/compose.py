@@ -18,7 +18,7 @@ one Zenoh router container:
 
 Every agent connects to ``tcp/router:7447`` and runs under the scenario's run name (keys
 ``ft/<run>/…``). The resolved scenario, the pre-run design and the recorder's metadata — the same three
-files ``flocktrack run`` writes (``run._write_inputs``) — are written to ``DIR/compose/`` and declared as
+files ``flocktrack run`` writes (``run.write_inputs``) — are written to ``DIR/compose/`` and declared as
 file-based Compose ``configs`` (``file: ./compose/…``), which appear read-only in every container that
 needs them under ``/etc/flocktrack/``; the compose file and ``DIR/compose/`` together describe the run.
 
@@ -107,12 +107,12 @@ class ComposeOptions:
 
 def run_inputs(sc, data: dict, scenario_label: str) -> dict[str, str]:
     """The texts of ``scenario.toml``, ``design.json`` and ``meta.json`` exactly as ``flocktrack run``
-    writes them (``run._write_inputs``); the meta's ``scenario_path`` is ``scenario_label`` (a path
+    writes them (``run.write_inputs``); the meta's ``scenario_path`` is ``scenario_label`` (a path
     relative to the project, so the output does not depend on where it was generated)."""
-    from .run import _write_inputs
+    from .run import write_inputs
 
     with tempfile.TemporaryDirectory() as td:
-        scen, design, _, meta = _write_inputs(sc, data, Path(td))
+        scen, design, _, meta = write_inputs(sc, data, Path(td))
         texts = {"scenario": scen.read_text(), "design": design.read_text()}
         meta_obj = json.loads(meta.read_text())
     meta_obj["scenario_path"] = scenario_label
@@ -393,7 +393,7 @@ def render(scenario: str | Path, out_dir: str | Path = ".", *, image: str = DEFA
     text, "compose/scenario.toml": text, "compose/design.json": text, "compose/meta.json": text}``."""
     from agent.scenario import parse_scenario
 
-    from .cli import scenario_data
+    from agent.scenario import scenario_data
 
     if restart not in ("never", "on-failure"):
         raise ValueError(f"--restart {restart!r}: never | on-failure")

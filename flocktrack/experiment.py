@@ -212,7 +212,7 @@ class SweepConfig:
 
 def run_data(cfg: SweepConfig, spec: RunSpec) -> dict:
     """The run's TOML mapping: the scenario, ``--set``, ``--ticks``, then the cell and the seed."""
-    from .cli import scenario_data
+    from agent.scenario import scenario_data
 
     named = {"run.ticks": cfg.ticks, "run.seed": spec.seed}
     named.update({a.key: v for a, v in zip(cfg.axes, spec.cell)})

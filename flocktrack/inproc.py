@@ -20,8 +20,7 @@ def run_inproc(sc: Scenario, progress: Callable[[int, int], None] | None = None,
                bus: LocalBus | None = None) -> tuple[MetricsCollector, Roles, LocalBus]:
     bus = LocalBus() if bus is None else bus
     roles = build_roles(sc)
-    metrics = MetricsCollector(sc.sensors.n, sc.run.ticks, sc.pos_dims, sc.run.burn_in,
-                               roles.design.get("tmsee_lower"), design=roles.design, T=sc.run.T)
+    metrics = MetricsCollector.for_scenario(sc, roles.design)
     metrics.subscribe(bus)
     for r in roles.all():
         r.attach(bus)

@@ -157,7 +157,7 @@ def _new_key():
     return ec.generate_private_key(ec.SECP256R1())
 
 
-def _key_pem(key) -> bytes:
+def key_pem(key) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
     return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
@@ -219,7 +219,7 @@ def issue(ca_key, ca_cert, cn: str, hosts: list[str] = (), days: int = 365):
     return key, cert
 
 
-def _cert_pem(cert) -> bytes:
+def cert_pem(cert) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
     return cert.public_bytes(serialization.Encoding.PEM)
@@ -227,7 +227,7 @@ def _cert_pem(cert) -> bytes:
 
 # ============================================================================ configs
 
-def _load_template(path: Path) -> dict:
+def load_json5(path: Path) -> dict:
     """The json5 template as a dict (comments and trailing commas stripped; keys may be bare)."""
     text = path.read_text()
     text = re.sub(r"^\s*//.*$", "", text, flags=re.M)
@@ -271,7 +271,7 @@ def client_config(ks_dir: Path, ident: str, password: str, endpoint: str, lease_
 
 def router_config(ks_dir: Path, ident: str, password: str, listen: list[str], connect: list[str] = (),
                   acl_block: dict | None = None, template: Path = SECURE_TEMPLATE) -> dict:
-    conf = _load_template(template)
+    conf = load_json5(template)
     conf = _merge(conf, {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
@@ -350,14 +350,14 @@ def make_keys(out: str | Path, run: str, n_sensors: int, endpoint: str = "tls/lo
     out.mkdir(parents=True, exist_ok=True)
     routers = list(dict.fromkeys(["router", *routers]))
     ca_key, ca_cert = make_ca(days)
-    _write_private(out / "ca.key", _key_pem(ca_key))
-    (out / "ca.pem").write_bytes(_cert_pem(ca_cert))
+    _write_private(out / "ca.key", key_pem(ca_key))
+    (out / "ca.pem").write_bytes(cert_pem(ca_cert))
     passwords: dict[str, str] = {}
     idents = identities(n_sensors) + [r for r in routers if r != "router"]
     for ident in idents:
         key, cert = issue(ca_key, ca_cert, ident, hosts=list(hosts) if ident in routers else [], days=days)
-        _write_private(out / "certs" / f"{ident}.key", _key_pem(key))
-        (out / "certs" / f"{ident}.pem").write_bytes(_cert_pem(cert))
+        _write_private(out / "certs" / f"{ident}.key", key_pem(key))
+        (out / "certs" / f"{ident}.pem").write_bytes(cert_pem(cert))
         passwords[ident] = secrets.token_urlsafe(24)
     _write_private(out / "passwords.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
     block = acl(run, n_sensors, routers)
@@ -388,7 +388,7 @@ def load_keys(path: str | Path) -> KeySet:
 # ============================================================================ CLI
 
 def cmd_keys(args) -> int:
-    from .cli import scenario_data
+    from agent.scenario import scenario_data
     from agent.scenario import parse_scenario
 
     data = scenario_data(args.scenario, args.set or [])

@@ -54,7 +54,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def _pdeathsig() -> None:  # runs in the child between fork and exec
+def die_with_parent() -> None:
+    """Ask the kernel to SIGKILL this process when its parent dies (run in the child between fork and exec)."""
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except OSError:
@@ -88,7 +89,7 @@ def _wait_stopped(pid: int, timeout_s: float) -> bool:
 _ALARMS = ("WARNING", "ERROR", "CRITICAL", "error:", "Traceback")
 
 
-def _worth_showing(line: str, in_traceback: bool) -> tuple[bool, bool]:
+def worth_showing(line: str, in_traceback: bool) -> tuple[bool, bool]:
     """Whether a child's log line belongs on the terminal without ``-v`` (a warning, an error, a
     traceback with its last line), and whether we are inside a traceback after it."""
     if line.startswith("Traceback"):
@@ -148,7 +149,7 @@ class Launcher:
         self.router = None
         self.events: list[dict] = []   # supervisor timeline (spawn / exit / restart), also in run.json
         self._lock = threading.Lock()
-        self._stopping = threading.Event()
+        self.stopping = threading.Event()   #: set once the launcher is stopping (no more restarts)
         self.extra_children = extra_children or []
         self.dashboard_port = dashboard_port
         self.ctl_bus = None
@@ -228,7 +229,7 @@ class Launcher:
         env["FLOCKTRACK_STATS_DIR"] = str(self.run_dir / "stats")
         env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         c.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                  env=env, preexec_fn=_pdeathsig, cwd=str(ROOT))
+                                  env=env, preexec_fn=die_with_parent, cwd=str(ROOT))
         self._event("spawn", c.name, pid=c.proc.pid, rejoin=rejoin)
         threading.Thread(target=self._forward, args=(c, c.proc), daemon=True).start()
 
@@ -240,7 +241,7 @@ class Launcher:
                 text = line.decode(errors="replace")
                 if "deadline on" in text:
                     self.deadlines += 1
-                show, in_traceback = _worth_showing(text, in_traceback)
+                show, in_traceback = worth_showing(text, in_traceback)
                 if not self.quiet and (self.verbose or show):
                     if self.on_output is not None:
                         self.on_output()
@@ -277,7 +278,7 @@ class Launcher:
             c.hold = True
             c.restart_at = None
             self.kill(name, signal.SIGKILL)
-        elif msg.verb == "restart" and not self.alive(name) and not self._stopping.is_set():
+        elif msg.verb == "restart" and not self.alive(name) and not self.stopping.is_set():
             c.hold = False
             c.restart_at = None
             self._event("restart", name, attempt=c.restarts, requested=True)
@@ -305,7 +306,7 @@ class Launcher:
                 if phase == "start":
                     c.hold, c.restart_at = True, None
                     self.kill(nme, signal.SIGKILL)
-                elif not self.alive(nme) and not self._stopping.is_set():
+                elif not self.alive(nme) and not self.stopping.is_set():
                     c.hold = False
                     self._spawn(c, rejoin=True)
                     self._event("restart", nme, attempt=c.restarts, fault=True)
@@ -368,10 +369,10 @@ class Launcher:
             rc = self._record_exit(c)
             if rc is not None:
                 if rc != 0 and c.policy.mode == "on-failure" and c.restarts < c.policy.max_restarts \
-                        and not self._stopping.is_set() and not c.hold:
+                        and not self.stopping.is_set() and not c.hold:
                     c.restarts += 1
                     c.restart_at = now + c.policy.delay(c.restarts)
-            if c.restart_at is not None and now >= c.restart_at and not self._stopping.is_set():
+            if c.restart_at is not None and now >= c.restart_at and not self.stopping.is_set():
                 c.restart_at = None
                 self._event("restart", c.name, attempt=c.restarts)
                 self._spawn(c, rejoin=True)
@@ -388,7 +389,7 @@ class Launcher:
             self.supervise_once(0.05)
             if on_poll is not None:
                 on_poll(self)
-            if self._stopping.is_set():
+            if self.stopping.is_set():
                 return 130
             w = self.children["world/0"]
             if w.proc is not None and w.proc.poll() is not None:
@@ -404,11 +405,11 @@ class Launcher:
                 return 124
 
     def request_stop(self) -> None:
-        self._stopping.set()
+        self.stopping.set()
 
     def shutdown(self, grace_s: float = 5.0) -> None:
         """SIGTERM every child, wait, SIGKILL what is left, close the router."""
-        self._stopping.set()
+        self.stopping.set()
         procs = [c.proc for c in self.children.values() if c.proc and c.proc.poll() is None]
         # the recorder last, so it records the others' goodbyes
         for p in procs:

@@ -19,11 +19,14 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from agent.estimators.registry import specs
+from agent.estimators.spec import RunTrace
 from agent.wire import Estimate, Meas, Message, State, Tick, Truth
 from topology.graph import algebraic_connectivity, is_connected
 
@@ -34,9 +37,17 @@ def summary_identity(sc) -> dict:
             "ticks": sc.run.ticks, "n_sensors": sc.sensors.n, "rounds": sc.estimator.rounds}
 
 
+SummaryHook = Callable[[Mapping[str, Any], RunTrace | None], dict]
+
+
 class MetricsCollector:
+    """Per-tick metrics of one run; ``summary_hook`` adds the estimator's own summary fields (its spec's
+    ``summary``) computed from the run's :class:`agent.estimators.spec.RunTrace`."""
+
     def __init__(self, n: int, ticks: int, pos_dims: int, burn_in: int = 0,
-                 tmsee_lower: Sequence[float] | None = None, design: dict | None = None, T: float | None = None):
+                 tmsee_lower: Sequence[float] | None = None, design: dict | None = None, T: float | None = None,
+                 summary_hook: SummaryHook | None = None):
+        self.summary_hook = summary_hook
         self.n, self.ticks, self.d, self.burn_in = int(n), int(ticks), int(pos_dims), int(burn_in)
         self.tmsee_lower = None if tmsee_lower is None else [float(v) for v in tmsee_lower]
         self._truth: dict[int, np.ndarray] = {}
@@ -49,6 +60,13 @@ class MetricsCollector:
         self._eps: dict[int, dict[int, dict[str, np.ndarray]]] = {}
         self._fusion: dict[str, list[tuple[float, float, np.ndarray, np.ndarray]]] = {}
         self._meas_pos: list[tuple[float, np.ndarray]] = []
+
+    @classmethod
+    def for_scenario(cls, sc, design: Mapping[str, Any]) -> "MetricsCollector":
+        """The collector of scenario ``sc`` with the runtime's pre-run ``design``."""
+        spec = specs().get(sc.estimator.name)
+        return cls(sc.sensors.n, sc.run.ticks, sc.pos_dims, sc.run.burn_in, design.get("tmsee_lower"),
+                   design=dict(design), T=sc.run.T, summary_hook=None if spec is None else spec.summary)
 
     def subscribe(self, bus) -> None:
         for pat in ("world/tick", "target/truth", "agent/*/estimate", "target/state", "agent/*/meas",
@@ -164,8 +182,8 @@ class MetricsCollector:
         if self.tmsee_lower is not None:
             s["tmsee_lower"] = [r.get("tmsee_lower") for r in rows]
         s["lambda2"] = [r.get("lambda2") for r in rows]
-        if "min_energy" in self.design:
-            s["hinf"] = self.hinf_report()
+        if self.summary_hook is not None:
+            s.update(self.summary_hook(self.design, self.run_trace()))
         if self._fusion:
             s["fusion"] = self.fusion_report()
         if extra:
@@ -205,12 +223,9 @@ class MetricsCollector:
                          "rmse_midwindow": float(np.sqrt(np.mean(np.sum(np.square(em), axis=1)))) if em else None}
         return out
 
-    def hinf_report(self) -> dict | None:
-        """Zamani & Ugrinovskii: the local H∞ ratios (6) per node and the network ratio (5) measured on
-        the run (disturbances w, vᵢ, εᵢⱼ as recorded, tick grid), beside the designed γ̄ᵢ² and γ²."""
-        from agent.estimators.min_energy import MinEnergyDesign, performance_report
-
-        dsg = MinEnergyDesign.from_dict(self.design["min_energy"])
+    def run_trace(self) -> RunTrace | None:
+        """The run's errors, disturbances and reported extras over the ticks 0…K every node estimated
+        (None when those ticks are not 0…K in a row, or the tick period is unknown)."""
         ks = [k for k in range(self.ticks) if k in self._truth and len(self._est.get(k, {})) == self.n]
         if len(ks) < 2 or ks != list(range(len(ks))) or self.T is None:
             return None
@@ -219,19 +234,11 @@ class MetricsCollector:
         m = len(self._w.get(0, [0.0]))
         w = np.array([self._w.get(k, np.zeros(m)) for k in range(K)])
         v = [np.array([self._v.get(k, {}).get(i, np.zeros(1)) for k in range(K)]) for i in range(self.n)]
-        eps: dict[tuple[int, int], np.ndarray] = {}
-        for (i, j) in dsg.problem.edges:
-            key = f"eps_{j}"
-            rows = [self._eps.get(k, {}).get(i, {}).get(key) for k in range(K)]
-            if all(r is not None for r in rows):
-                eps[(i, j)] = np.array(rows)
-        rep = performance_report(dsg, E, -E[0], w, v, eps, self.T)
-        return {"gamma2_design": float(dsg.gamma2), "gamma2_star": float(dsg.gamma2_star),
-                "network_ratio": rep["network"]["ratio"], "network_bound": rep["network"]["bound"],
-                "node_ratio": [nd["ratio"] for nd in rep["nodes"]],
-                "node_ratio_beta": [nd["ratio_beta"] for nd in rep["nodes"]],
-                "node_bound": [nd["bound"] for nd in rep["nodes"]],
-                "iqc_holds": [bool(nd["iqc_holds"]) for nd in rep["nodes"]]}
+
+        def extra(k: int, i: int, name: str) -> np.ndarray | None:
+            return self._eps.get(k, {}).get(i, {}).get(name)
+
+        return RunTrace(T=float(self.T), errors=E, w=w, v=v, extra=extra)
 
     def write(self, out_dir: str | Path, extra: dict | None = None) -> dict:
         out = Path(out_dir)

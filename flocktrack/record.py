@@ -164,8 +164,7 @@ def metrics_from_recording(path: str | Path, out_dir: str | Path | None = None, 
         raise ValueError(f"{path}: not a flocktrack recording (no scenario metadata)")
     sc = parse_scenario(tomllib.loads(rec.metadata["scenario"]), rec.metadata.get("scenario_path", str(path)))
     design = json.loads(rec.metadata.get("design", "{}"))
-    m = MetricsCollector(sc.sensors.n, sc.run.ticks, sc.pos_dims, sc.run.burn_in, design.get("tmsee_lower"),
-                         design=design, T=sc.run.T)
+    m = MetricsCollector.for_scenario(sc, design)
     for key, msg, _t in rec.messages:
         m.ingest(key, msg)
     extra = summary_identity(sc)

@@ -9,16 +9,15 @@ over Zenoh, with ``record=True`` in-process — ``recording.mcap``.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import sys
 import time
 import uuid
 from pathlib import Path
-from typing import Any
 
 import tomli_w
 
+from agent.assemble import extra_processes
 from agent.scenario import Scenario
 
 from .build import design as make_design
@@ -55,7 +54,7 @@ class Progress:
             self._bar.stop()
 
 
-def _write_inputs(sc: Scenario, data: dict, out: Path) -> tuple[Path, Path, dict, Path]:
+def write_inputs(sc: Scenario, data: dict, out: Path) -> tuple[Path, Path, dict, Path]:
     out.mkdir(parents=True, exist_ok=True)
     scen_file = out / "scenario.toml"
     scen_text = tomli_w.dumps(data)
@@ -75,7 +74,7 @@ def run_inproc_to_dir(sc: Scenario, data: dict, out: Path, record: bool = False,
 
     from .inproc import run_inproc
 
-    _, _, dsg, meta_file = _write_inputs(sc, data, out)
+    _, _, dsg, meta_file = write_inputs(sc, data, out)
     bus = LocalBus()
     rec = None
     if record:
@@ -117,7 +116,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
 
     ``mesh``: a :class:`flocktrack.secure.Mesh` placing the processes on several hosts, each with its
     own router (tests/test_multihost.py)."""
-    scen_file, design_file, dsg, meta_file = _write_inputs(sc, data, out)
+    scen_file, design_file, dsg, meta_file = write_inputs(sc, data, out)
     run = f"{sc.run.name}-{uuid.uuid4().hex[:8]}"
     keys = None
     if secure_dir is not None:
@@ -128,7 +127,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     launcher = Launcher(run, out, sc.sensors.n, scen_file, design_file, sc.run.mode, port=port,
                         policy=RestartPolicy(restart, max_restarts), record_to=out / "recording.mcap",
                         meta_file=meta_file, quiet=quiet, dashboard_port=dashboard_port, keys=keys,
-                        mesh=mesh, fusion=sc.uav is not None, verbose=verbose)
+                        mesh=mesh, fusion="fusion" in extra_processes(sc), verbose=verbose)
     stop_signals = {}
 
     def on_signal(signum, _frame):
@@ -164,7 +163,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
             if on_results is not None:
                 on_results(*results)
             print(f"the dashboard stays up at http://localhost:{dashboard_port} — Ctrl-C to quit", file=sys.stderr)
-            while not launcher._stopping.is_set() and launcher.alive("dashboard/0"):
+            while not launcher.stopping.is_set() and launcher.alive("dashboard/0"):
                 time.sleep(0.2)
     finally:
         if status is not None:
@@ -220,10 +219,10 @@ def replay_dashboard(path: str | Path, port: int = 8080) -> int:
     """Serve a recording in the dashboard (time slider) until Ctrl-C."""
     import subprocess
 
-    from .launch import ROOT, _pdeathsig
+    from .launch import ROOT, die_with_parent
 
     proc = subprocess.Popen([sys.executable, "-m", "dashboards", "--recording", str(path), "--port", str(port)],
-                            cwd=str(ROOT), preexec_fn=_pdeathsig)
+                            cwd=str(ROOT), preexec_fn=die_with_parent)
     print(f"dashboard on http://localhost:{port} — Ctrl-C to quit", file=sys.stderr)
     try:
         return proc.wait()
@@ -244,7 +243,7 @@ def replay(path: str | Path, connect: str | None = None, speed: float = 1.0, por
     if connect is None:
         router = open_router(port)
         connect = f"tcp/127.0.0.1:{port}"
-    name = run or json.loads(json.dumps({})) or None
+    name = run
     if name is None:
         import tomllib
 
@@ -270,4 +269,3 @@ def replay(path: str | Path, connect: str | None = None, speed: float = 1.0, por
 
 
 __all__ = ["run_inproc_to_dir", "run_zenoh_to_dir", "replay", "Progress"]
-_ = os, Any

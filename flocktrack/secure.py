@@ -24,7 +24,7 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .keys import _load_template as load_json5
+from .keys import load_json5
 
 ROOT = Path(__file__).resolve().parents[1]
 MESH_DIR = ROOT / "broker_cfg" / "mesh"

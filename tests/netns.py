@@ -163,7 +163,7 @@ def mesh_run(spec_file: str) -> int:
     """Run the spec's scenario over a mesh (this process is on host 0)."""
     sys.path.insert(0, str(ROOT))
     from agent.scenario import parse_scenario
-    from flocktrack.cli import scenario_data
+    from agent.scenario import scenario_data
     from flocktrack.run import run_zenoh_to_dir
     from flocktrack.secure import Host, Mesh
 

@@ -10,7 +10,7 @@ import numpy as np
 from agent.bus import LocalBus, ZenohBus
 from agent.scenario import load_scenario, parse_scenario
 from agent.wire import Control
-from flocktrack.cli import scenario_data
+from agent.scenario import scenario_data
 from flocktrack.record import read_recording
 from flocktrack.run import run_zenoh_to_dir
 from topology.world import build_world

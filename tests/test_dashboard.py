@@ -458,9 +458,9 @@ def test_camera_reports_tell_the_users_moves_from_ours():
     poses the tab reports. Its own commands come back late and in pieces — a position alone (the look-at
     kept), a look-at alone, an older look-at with a newer position — so a report is ours when its position
     and its look-at are each one we sent; a user's orbit, pan or zoom moves at least one of them elsewhere."""
-    from dashboards.live import _ClientView
+    from dashboards.live import ClientView
 
-    v = _ClientView()
+    v = ClientView()
     v.remember(0, (0.0, -30.0, 40.0), (0.0, 0.0, 0.0))                  # the page's initial camera
     for seq in (1, 2, 3):                                               # three commands gliding east
         v.seq = seq
@@ -559,7 +559,7 @@ def test_viser_ui_renders_and_buttons_queue_controls():
         ui.render_status(st.summary())
         ui.select(4)
         assert ui.g_node.value == "4" and ui.g_kill_id.value == 4
-        ui._control("kill", agent=4)
+        ui.control("kill", agent=4)
         groups = ui.partition_groups()
         assert sorted(groups) == [0] * 6 + [1] * 6
         assert sent == [("kill", {"agent": 4})]

@@ -203,7 +203,7 @@ def drive_browser(port: int, out: dict, shots: Path, world: WorldWatch) -> None:
 def session(tmp_path_factory):
     _require_browser()
     from agent.scenario import parse_scenario
-    from flocktrack.cli import scenario_data
+    from agent.scenario import scenario_data
     from flocktrack.launch import free_port
     from flocktrack.record import read_recording
     from flocktrack.run import run_zenoh_to_dir

@@ -46,7 +46,7 @@ def test_mean_of_node_estimates_equals_centralized_filter_in_the_engine(rounds):
     bus.taps.append(tap)
     run_inproc(sc, bus=bus)
     n = sc.sensors.n
-    cen = CentralizedMinimax(sc.A, sc.filter_Q(), [sc.C] * n, [sc.R] * n, np.array(sc.estimator.S),
+    cen = CentralizedMinimax(sc.A, sc.filter_Q(), [sc.C] * n, [sc.R] * n, np.array(sc.estimator.params.S),
                              sc.initial_estimates()[0], np.eye(sc.m))
     worst_mean, worst_node = 0.0, 0.0
     for k in range(sc.run.ticks):

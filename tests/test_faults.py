@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from agent.scenario import ScenarioError, parse_scenario
-from flocktrack.cli import scenario_data
+from agent.scenario import scenario_data
 from flocktrack.record import read_recording
 from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir
 

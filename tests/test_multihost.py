@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from agent.scenario import parse_scenario
-from flocktrack.cli import scenario_data
+from agent.scenario import scenario_data
 from flocktrack.record import read_recording
 from flocktrack.run import run_inproc_to_dir
 from flocktrack.secure import MESH_DIR, mesh_configs

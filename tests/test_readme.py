@@ -101,7 +101,7 @@ def test_fault_verb_did_you_mean(capsys):
 ])
 def test_scenario_errors_say_did_you_mean(over, key, hint):
     from agent.scenario import ScenarioError, parse_scenario
-    from flocktrack.cli import scenario_data
+    from agent.scenario import scenario_data
 
     data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [], **over)
     with pytest.raises(ScenarioError) as e:
@@ -111,7 +111,7 @@ def test_scenario_errors_say_did_you_mean(over, key, hint):
 
 def test_fault_kind_did_you_mean():
     from agent.scenario import ScenarioError, parse_scenario
-    from flocktrack.cli import scenario_data
+    from agent.scenario import scenario_data
 
     data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [])
     data["faults"] = {"events": [{"kind": "crsh", "targets": "agents:1", "start": 3}]}
@@ -121,13 +121,13 @@ def test_fault_kind_did_you_mean():
 
 
 def test_only_warnings_errors_and_tracebacks_reach_the_terminal_without_v():
-    from flocktrack.launch import _worth_showing
+    from flocktrack.launch import worth_showing
 
     lines = ["INFO agent.runner: agent/7: deadline on (93, 0)\n", "WARNING agent.runner: agent/7: starting without\n",
              "Traceback (most recent call last):\n", '  File "x.py", line 1, in <module>\n', "ValueError: boom\n",
              "INFO world: done\n", "2026-12-01T17:26:15Z  WARN zenoh::net: lost the router\n", "error: bad scenario\n"]
     shown, tb = [], False
     for ln in lines:
-        show, tb = _worth_showing(ln, tb)
+        show, tb = worth_showing(ln, tb)
         shown.append(show)
     assert shown == [False, True, True, True, True, False, True, True]

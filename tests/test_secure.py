@@ -19,8 +19,8 @@ from cryptography.hazmat.primitives.asymmetric import ec
 
 from agent.scenario import parse_scenario
 from agent import wire
-from flocktrack.cli import scenario_data
-from flocktrack.keys import acl, identities, issue, load_keys, make_ca, make_keys, register, _cert_pem, _key_pem
+from agent.scenario import scenario_data
+from flocktrack.keys import acl, identities, issue, load_keys, make_ca, make_keys, register, cert_pem, key_pem
 from flocktrack.launch import free_port, open_router
 from flocktrack.record import read_recording
 from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir
@@ -168,8 +168,8 @@ def test_only_clients_with_the_ca_a_certificate_and_their_password_connect(keyse
     # a certificate with the right name from another CA
     k2, c2 = make_ca()
     lk, lc = issue(k2, c2, "agent-3")
-    (tmp_path / "f.key").write_bytes(_key_pem(lk))
-    (tmp_path / "f.pem").write_bytes(_cert_pem(lc))
+    (tmp_path / "f.key").write_bytes(key_pem(lk))
+    (tmp_path / "f.pem").write_bytes(cert_pem(lc))
     assert not can_connect(client_conf(keyset, "agent-3", router,
                                        **{"transport/link/tls/connect_private_key": str(tmp_path / "f.key"),
                                           "transport/link/tls/connect_certificate": str(tmp_path / "f.pem")}))

@@ -105,3 +105,89 @@ def test_fast_json_writes_what_to_json_says_and_reads_back_bit_exact():
         assert wire.encode(back) == wire.encode(wire.decode(key[m.TYPE], wire.encode(m))), m.TYPE
     odd = wire.State(src=4, k=1, pos=np.arange(6.0).reshape(2, 3)[:, 1], vel=np.zeros(2))  # not contiguous
     assert json.loads(odd.to_json_bytes()) == json.loads(json.dumps(odd.to_json()))
+
+
+# ------------------------------------------------------------------ typed control arguments
+
+def test_a_fault_event_decodes_into_its_typed_form_bit_for_bit():
+    """What the world publishes on world/event (topology/faults.py ActiveFault.event_args) comes back, after
+    the wire, as a FaultEvent with every parameter; a launcher ack (id, kind, phase, agents) too."""
+    from agent.scenario import FaultEventCfg
+    from topology.faults import ActiveFault
+
+    f = ActiveFault(7, FaultEventCfg(kind="byzantine", mode="bias", bias=[0.5, -1.0], p=0.25, delay_ticks=3,
+                                     direction="in"), agents=[2, 4], links=[(0, 1), (2, 3)])
+    m = wire.decode("world/event", wire.encode(wire.Control(k=3, verb="fault", args=f.event_args("start"))))
+    e = wire.fault_event(m.args)
+    assert (e.id, e.kind, e.phase, e.agents, e.links, e.groups) == (7, "byzantine", "start", (2, 4),
+                                                                   ((0, 1), (2, 3)), None)
+    assert (e.mode, e.bias, e.p, e.delay_ticks, e.direction) == ("bias", (0.5, -1.0), 0.25, 3, "in")
+    ack = wire.fault_event({"id": 1001, "kind": "crash", "phase": "heal", "agents": [1.0]}, n=3)
+    assert (ack.agents, ack.delay_ticks, ack.mode) == ((1,), 1, None)
+    with pytest.raises(wire.WireError, match="agents"):
+        wire.fault_event({"id": 1, "kind": "crash", "phase": "heal", "agents": [3.0]}, n=3)
+
+
+def test_the_fault_limits_are_the_scenarios():
+    """One set of bounds: a [[faults.events]] entry the scenario accepts is a fault event the wire accepts."""
+    from agent.scenario import FAULT_KINDS, ScenarioError, parse_fault_event
+
+    assert tuple(wire.FAULT_KINDS) == tuple(FAULT_KINDS)
+    for name, hi in wire.FAULT_LIMITS.items():
+        over = hi + 1 if isinstance(hi, int) else hi * 1.01
+        parse_fault_event({"kind": "delay", name: hi}, 3)
+        wire.fault_event({"id": 0, "kind": "delay", "phase": "start", name: hi})
+        with pytest.raises(ScenarioError):
+            parse_fault_event({"kind": "delay", name: over}, 3)
+        with pytest.raises(wire.WireError, match=name):
+            wire.fault_event({"id": 0, "kind": "delay", "phase": "start", name: over})
+
+
+@pytest.mark.parametrize("verb, args, want", [
+    ("pause", {}, wire.Command("pause")),
+    ("step", {}, wire.Step("step", 1)),
+    ("step", {"n": 0}, wire.Step("step", 1)),
+    ("step", {"n": 5.0}, wire.Step("step", 5)),
+    ("speed", {"factor": 2}, wire.Speed("speed", 2.0)),
+    ("link_drop", {"a": 3, "b": 1.0}, wire.LinkEdit("link_drop", 3, 1)),
+    ("link_loss", {"p": 1}, wire.LinkLoss("link_loss", 1.0)),
+    ("partition", {"groups": [0.0, 1.0, 1.0, 0.0]}, wire.Partition("partition", (0, 1, 1, 0))),
+    ("heal_fault", {"id": 1001}, wire.HealFault("heal_fault", 1001)),
+    ("outlier_burst", {}, wire.OutlierBurst("outlier_burst", -1, 1, 0.0)),
+    ("outlier_burst", {"agent": 2, "ticks": 5.0, "magnitude": 50}, wire.OutlierBurst("outlier_burst", 2, 5, 50.0)),
+    ("inject", {"kind": "delay", "delay_ticks": 2.0, "jitter_ms": 1.0, "ticks": 3, "id": 9, "start": 4},
+     wire.Inject("inject", {"kind": "delay", "delay_ticks": 2, "jitter_ms": 1.0}, 3)),
+])
+def test_control_commands_are_typed(verb, args, want):
+    got = wire.command(verb, args, n=4)
+    assert got == want and type(got) is type(want)
+
+
+@pytest.mark.parametrize("verb, args, words", [
+    ("speed", {"factor": 0.0}, "factor"), ("speed", {"factor": True}, "factor"), ("speed", {}, "factor"),
+    ("step", {"n": "x"}, "n"),
+    ("link_drop", {"a": 1, "b": 1}, "different"), ("link_heal", {"a": 0, "b": 4}, "b"),
+    ("link_drop", {"a": 0.5, "b": 1}, "a"),
+    ("link_loss", {"p": 3.0}, "p"), ("link_loss", {"p": False}, "p"),
+    ("partition", {"groups": [0, 1]}, "each of the 4"), ("partition", {"groups": [0, -1, 0, 0]}, "groups"),
+    ("heal_fault", {"id": "x"}, "id"),
+    ("inject", {"kind": "delay", "ticks": 0}, "inject.ticks"), ("inject", {"ticks": True}, "inject.ticks"),
+    ("outlier_burst", {"ticks": 10_001}, "ticks"), ("outlier_burst", {"agent": -2}, "agent"),
+    ("outlier_burst", {"magnitude": "big"}, "magnitude"),
+])
+def test_bad_control_arguments_are_refused_with_the_argument_named(verb, args, words):
+    with pytest.raises(wire.WireError) as e:
+        wire.command(verb, args, n=4)
+    assert e.value.reason == "bad_field" and words in e.value.detail
+
+
+def test_unknown_verbs_are_refused():
+    for verb in ("kill", "restart", "no_such_verb"):
+        with pytest.raises(wire.WireError, match="unknown_verb"):
+            wire.command(verb, {})
+
+
+def test_peek_round_reads_sender_tick_and_round_without_decoding():
+    data = wire.encode(wire.Xchg(src=3, k=12, r=4, payload={"a": np.zeros(2)}))
+    assert wire.peek_round("agent/3/xchg", data) == (3, 12, 4)
+    assert wire.peek_round("agent/x/xchg", data) is None and wire.peek_round("agent/3/xchg", b"\x01") is None

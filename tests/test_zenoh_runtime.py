@@ -14,7 +14,8 @@ import pytest
 
 from agent.bus import ZenohBus
 from agent.scenario import load_scenario
-from flocktrack.cli import main, scenario_data
+from agent.scenario import scenario_data
+from flocktrack.cli import main
 from flocktrack.record import read_recording
 from flocktrack.run import run_zenoh_to_dir
 

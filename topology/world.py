@@ -21,12 +21,15 @@ return — so a crash scheduled for tick k lands at tick k and the sensor is bac
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from agent.bus import Bus
 from agent.roles.common import Role
 from agent.seeding import rng_for
-from agent.wire import Control, End, Message, State, Tick, int_list
+from agent.wire import (Command, Control, End, HealFault, Inject, LinkEdit, LinkLoss, Message, Partition, Speed, State,
+                        Step, Tick, WireError, command, fault_event)
 
 from agent.scenario import FaultsCfg, Scenario, ScenarioError, parse_fault_event
 
@@ -129,88 +132,74 @@ class WorldRole(Role):
             self.publish("world/event", Control(k=self._next_k(), verb=msg.verb, args=args))
 
     def apply_control(self, verb: str, args: dict) -> bool:
-        """Apply one control verb; returns False for verbs that are not the world's."""
-        def node(name: str) -> int | None:
-            v = args.get(name)
-            return int(v) if isinstance(v, (int, float)) and 0 <= int(v) < self.n else None
-
-        if verb == "pause":
-            self.paused, self._step_budget = True, None
-        elif verb == "resume":
-            self.paused, self._step_budget = False, None
-            self._release()
-        elif verb == "step":
-            self.paused, self._step_budget = False, max(1, int(args.get("n", 1) or 1))
-            self._release()
-        elif verb == "speed":
-            f = args.get("factor")
-            if not isinstance(f, (int, float)) or not f > 0:
-                return False
-            if self._t0 is not None:
-                import time as _t
-
-                now = _t.monotonic()
-                # keep the current tick's phase: re-anchor t0 so that elapsed ticks stay where they are
-                elapsed_ticks = (now - self._t0) / self.period
-                self.period = self.T / float(f)
-                self._t0 = now - elapsed_ticks * self.period
-            else:
-                self.period = self.T / float(f)
-        elif verb in ("link_drop", "link_heal"):
-            a, b = node("a"), node("b")
-            if a is None or b is None or a == b:
-                return False
-            e = (min(a, b), max(a, b))
-            (self.dropped_links.add if verb == "link_drop" else self.dropped_links.discard)(e)
-        elif verb == "link_loss":
-            p = args.get("p")
-            if not isinstance(p, (int, float)) or not 0 <= p <= 1:
-                return False
-            self.link_loss = float(p)
-        elif verb == "partition":
-            g = args.get("groups")
-            if not isinstance(g, list) or len(g) != self.n:
-                return False
-            self.groups = [int(x) for x in g]
-        elif verb == "heal":
-            self.groups, self.link_loss = None, 0.0
-            self.dropped_links.clear()
-            self.plan.heal_at(self._next_k())
-        elif verb == "inject":
-            return self._inject(args)
-        elif verb == "heal_fault":
-            fid = args.get("id")
-            if isinstance(fid, bool) or not isinstance(fid, (int, float)) or not self.plan.heal_at(self._next_k(), int(fid)):
-                return False
-        else:
+        """Apply one control verb, its arguments typed by :func:`agent.wire.command`. False: not the world's
+        verb, or refused (:attr:`last_rejection` says why)."""
+        if verb not in WORLD_VERBS:
             return False
+        try:
+            cmd = command(verb, args, self.n)
+        except WireError as exc:
+            self.last_rejection = exc.detail or exc.reason
+            if verb == "inject":
+                self.stats["rejected_injections"] = self.stats.get("rejected_injections", 0) + 1
+            return False
+        return self._execute(cmd)
+
+    def _execute(self, cmd: Command) -> bool:
+        match cmd:
+            case Step(n=n):
+                self.paused, self._step_budget = False, n
+                self._release()
+            case Speed(factor=f):
+                self._set_speed(f)
+            case LinkEdit(verb=verb, a=a, b=b):
+                (self.dropped_links.add if verb == "link_drop" else self.dropped_links.discard)((min(a, b), max(a, b)))
+            case LinkLoss(p=p):
+                self.link_loss = p
+            case Partition(groups=g):
+                self.groups = list(g)
+            case Inject():
+                return self._inject(cmd)
+            case HealFault(id=fid):
+                if not self.plan.heal_at(self._next_k(), fid):
+                    self.last_rejection = f"no live fault {fid} to heal"
+                    return False
+            case Command(verb="pause"):
+                self.paused, self._step_budget = True, None
+            case Command(verb="resume"):
+                self.paused, self._step_budget = False, None
+                self._release()
+            case Command(verb="heal"):
+                self.groups, self.link_loss = None, 0.0
+                self.dropped_links.clear()
+                self.plan.heal_at(self._next_k())
         return True
+
+    def _set_speed(self, factor: float) -> None:
+        """Realtime pace T / factor; the current tick keeps its phase (t0 is re-anchored so that the elapsed
+        ticks stay where they are)."""
+        if self._t0 is not None:
+            now = time.monotonic()
+            elapsed_ticks = (now - self._t0) / self.period
+            self.period = self.T / factor
+            self._t0 = now - elapsed_ticks * self.period
+        else:
+            self.period = self.T / factor
 
     def _next_k(self) -> int:
         """The tick a control received now takes effect on (the open one has been published already)."""
         return self.k + 1 if self._open else self.k
 
-    def _inject(self, args: dict) -> bool:
-        """control/inject: one fault-plan event, live (args: the keys of a [[faults.events]] entry, and
-        ``ticks`` for its duration). A malformed one is rejected and counted, never raised."""
-        table = {a: v for a, v in args.items() if a not in ("ticks", "id")}
-        for a in ("start", "heal"):
-            table.pop(a, None)
-        ticks = args.get("ticks")
-        if ticks is not None and (isinstance(ticks, bool) or not isinstance(ticks, (int, float)) or not 1 <= ticks <= 10**7):
-            self.stats["rejected_injections"] = self.stats.get("rejected_injections", 0) + 1
-            self.last_rejection = f"inject.ticks: the fault's duration must be a number of ticks ≥ 1, got {ticks!r}"
-            return False
-        for a in ("delay_ticks", "jitter_ticks"):   # integers on the wire may come back as floats
-            if isinstance(table.get(a), float) and table[a].is_integer():
-                table[a] = int(table[a])
+    def _inject(self, cmd: Inject) -> bool:
+        """control/inject: one fault-plan event, live (the keys of a [[faults.events]] entry, typed by the
+        scenario schema, for ``ticks`` ticks). A malformed one is rejected and counted, never raised."""
         try:
-            e = parse_fault_event(table, self.n)
+            e = parse_fault_event(cmd.event, self.n)
         except ScenarioError as exc:
             self.stats["rejected_injections"] = self.stats.get("rejected_injections", 0) + 1
             self.last_rejection = str(exc)
             return False
-        self.live_faults.append(self.plan.inject(e, self._next_k(), None if ticks is None else int(ticks)))
+        self.live_faults.append(self.plan.inject(e, self._next_k(), cmd.ticks))
         return True
 
     def _release(self) -> None:
@@ -336,18 +325,18 @@ class WorldRole(Role):
         """``ack`` {id, kind, phase, agents}: the launcher executed a process fault. A crashed sensor is dead
         from this tick on (its liveliness token may take a moment to go); a restarted one is awaited."""
         assert isinstance(msg, Control)
-        a = msg.args
-        fid, phase = a.get("id"), a.get("phase")
-        if msg.verb != "ack" or isinstance(fid, bool) or not isinstance(fid, (int, float)):
+        if msg.verb != "ack":
             return
-        agents = int_list(a.get("agents", []), 0, self.n) or []
-        kind = a.get("kind")
-        if kind == "crash" and phase == "start":
-            for i in agents:
+        try:
+            ack = fault_event(msg.args, self.n)
+        except WireError:
+            return
+        if ack.kind == "crash" and ack.phase == "start":
+            for i in ack.agents:
                 if self.alive[i]:
                     self.alive[i] = False
                     self._expected.discard(i)
-        self.hold.ack(int(fid), phase, kind, agents)
+        self.hold.ack(ack.id, ack.phase, ack.kind, list(ack.agents))
         self._release_fault_hold()
         self._check()
 

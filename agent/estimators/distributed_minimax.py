@@ -26,13 +26,17 @@ missing or malformed one counts as a dropped link for that round.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from ..schema import Matrix, ScenarioError, check_covariance
 from .base import Estimator, Payload, TickContext, valid_inbox
 from .consensus import consensus_rate, consensus_round
 from .minimax import information_update, inverse_or_zero, sensor_information
 from .riccati import sym
+from .spec import EstimatorSpec
 
 _KEYS = ("chi1", "chi2", "chi3")
 
@@ -143,3 +147,41 @@ class DistributedKalman(DistributedMinimax):
                  x0: np.ndarray, P0: np.ndarray, rounds: int, eta_rule: str = "1/(dmax+1)",
                  resilient_f: int = 0):
         super().__init__(A, Q, C, R, None, n, x0, P0, rounds, eta_rule, resilient_f)
+
+
+# ----------------------------------------------------------------------------- the runtime's specs
+
+@dataclass(frozen=True)
+class MinimaxParams:
+    """``[estimator]`` keys of the minimax filter: S, the adversary noise covariance (q × q) of (13)."""
+
+    S: Matrix | None = None
+
+
+def _check_minimax(sc: Any, p: MinimaxParams) -> None:
+    q = sc.C.shape[0]
+    if p.S is None:
+        raise ScenarioError(sc.source, "estimator.S", "the minimax filter needs S (q × q)",
+                            "add S, or use name = \"kalman\" (the S → ∞ case)")
+    check_covariance(sc.source, "estimator.S", p.S, q, f"q × q with q = {q}")
+
+
+def _build_minimax(sc: Any, i: int, p: MinimaxParams, design: Mapping[str, Any]) -> DistributedMinimax:
+    e = sc.estimator
+    return DistributedMinimax(sc.A, sc.filter_Q(), sc.C, sc.R, np.array(p.S, float), sc.sensors.n,
+                              sc.initial_estimates()[i], sc.initial_covariance(), e.rounds, e.eta, e.resilient_f)
+
+
+def _build_kalman(sc: Any, i: int, p: Any, design: Mapping[str, Any]) -> DistributedKalman:
+    e = sc.estimator
+    return DistributedKalman(sc.A, sc.filter_Q(), sc.C, sc.R, sc.sensors.n, sc.initial_estimates()[i],
+                             sc.initial_covariance(), e.rounds, e.eta, e.resilient_f)
+
+
+MINIMAX = EstimatorSpec(
+    name="minimax", params=MinimaxParams, check=_check_minimax, build=_build_minimax, default=True,
+    doc="Gu & Hu's distributed minimax filter (18a)/(18b)")
+
+KALMAN = EstimatorSpec(
+    name="kalman", build=_build_kalman,
+    doc="the distributed Kalman filter: the minimax filter with S → ∞ (Gu & Hu, Section IV)")

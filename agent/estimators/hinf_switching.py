@@ -45,11 +45,16 @@ Q = 0.01 I, γ = 0.1, K = [0.9376, 0.5884]ᵀ; see tests/test_hinf_switching.py)
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.linalg
 
 from agent.estimators.base import Estimator, Payload, TickContext, valid_inbox
+from agent.estimators.spec import EstimatorSpec, GraphFacts
+from agent.schema import Matrix, ScenarioError, check_covariance
+from agent.seeding import rng_for
 from agent.estimators.consensus import disagreement
 from agent.estimators.riccati import is_positive_definite, iterate_to_fixed_point, sym
 
@@ -463,3 +468,68 @@ class HinfSwitchingEstimator(Estimator):
 
     def _set_x(self, x: np.ndarray) -> None:
         self._x = self._vec(x, self._m, "x")
+
+
+# ----------------------------------------------------------------------------- the runtime's spec
+
+@dataclass(frozen=True)
+class HinfParams:
+    """``[estimator]`` keys of Chen et al.'s estimator: γ of ARE (9), its design weights R and Q
+    (default: the identity and the filter's process noise), the covariance of the neighbour-term noise
+    wᵢ₂, and λ₀ (a lower bound on λ_min(L + B); a range topology must give it, a schedule's graphs give it)."""
+
+    gamma: float = 0.1
+    R_design: Matrix | None = None   # noqa: N815 - the paper's R
+    Q_design: Matrix | None = None   # noqa: N815 - the paper's Q
+    comm_noise: Matrix | None = None
+    lambda0: float | None = None
+
+
+def _check(sc: Any, p: HinfParams) -> None:
+    src, m, q = sc.source, sc.m, sc.C.shape[0]
+    if p.R_design is not None:
+        check_covariance(src, "estimator.R_design", p.R_design, q, "design weight R of ARE (9)")
+    if p.Q_design is not None:
+        check_covariance(src, "estimator.Q_design", p.Q_design, m, "design weight Q of ARE (9)")
+    if p.comm_noise is not None:
+        check_covariance(src, "estimator.comm_noise", p.comm_noise, q, "covariance of the neighbour-term noise",
+                         semi=True)
+    if not p.gamma >= 0:
+        raise ScenarioError(src, "estimator.gamma", "γ must be ≥ 0")
+    if sc.topology.kind == "range" and p.lambda0 is None:
+        raise ScenarioError(src, "estimator.lambda0", "a range topology has no finite list of graphs to take "
+                            "λ₀ from", "give lambda0 (a lower bound on λ_min(L + B)) or use a schedule")
+
+
+def _design(sc: Any, p: HinfParams, facts: GraphFacts) -> dict[str, Any]:
+    """The constant gain K (Theorem 3.3) from λ₀ over the schedule's graphs (or the given lambda0), and
+    for a schedule the TMSEE lower bound (12) tick by tick."""
+    H = list(facts.H_graphs) if facts.H_graphs is not None else [np.eye(1) * float(p.lambda0)]
+    Rd = np.eye(sc.C.shape[0]) if p.R_design is None else np.array(p.R_design, float)
+    Qd = sc.filter_Q() if p.Q_design is None else np.array(p.Q_design, float)
+    out: dict[str, Any] = {"K": np.asarray(constant_gain(sc.A, sc.C, Qd, Rd, p.gamma, H), float).tolist()}
+    if facts.H_per_tick is None:
+        return out
+    n, m = sc.sensors.n, sc.m
+    Rn = sc.R + (np.zeros_like(sc.R) if p.comm_noise is None else np.array(p.comm_noise, float))
+    Qw = sc.B @ sc.Qw @ sc.B.T
+    off = np.zeros((n, m)) if sc.estimator.x0_offsets is None else np.array(sc.estimator.x0_offsets, float)
+    Z0 = np.zeros((n * m, n * m))
+    for i in range(n):
+        Z0[i * m:(i + 1) * m, i * m:(i + 1) * m] = np.outer(off[i], off[i])
+    lower = tmsee_lower_bound(sc.A, sc.C, Qw, Rn, p.gamma, list(facts.H_per_tick), Z0)
+    out["tmsee_lower"] = np.asarray(lower, float)[: sc.run.ticks].tolist()
+    return out
+
+
+def _build(sc: Any, i: int, p: HinfParams, design: Mapping[str, Any]) -> HinfSwitchingEstimator:
+    if "K" not in design:
+        raise ValueError("hinf_switching needs the design gain K (computed by the runtime from the schedule)")
+    comm = None if p.comm_noise is None else np.array(p.comm_noise, float)
+    return HinfSwitchingEstimator(sc.A, sc.C, np.array(design["K"], float), sc.initial_estimates()[i],
+                                  comm_noise_cov=comm, rng=rng_for(sc.run.seed, "agent", i, "comm_noise"),
+                                  resilient_f=sc.estimator.resilient_f)
+
+
+SPEC = EstimatorSpec(name="hinf_switching", params=HinfParams, check=_check, design=_design, build=_build,
+                     doc="Chen et al.'s H∞ consensus estimator (3) under switching topologies")

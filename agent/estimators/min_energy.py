@@ -76,7 +76,8 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 import scipy.linalg
@@ -87,6 +88,9 @@ from agent.estimators.min_energy_design import (  # noqa: F401 - re-exported API
     design_network, make_problem, node_ranges, solve_supremum, table_row,
 )
 from agent.estimators.riccati import sym
+from agent.estimators.spec import EstimatorSpec, GraphFacts, RunTrace
+from agent.schema import Matrices, Matrix, Pairs, ScenarioError
+from agent.seeding import rng_for
 
 __all__ = [
     "MinEnergyNode", "riccati_hamiltonian", "riccati_step", "expm_batched", "l2_energy", "iqc_offset",
@@ -537,3 +541,119 @@ def performance_report(design: MinEnergyDesign, errors: np.ndarray, x0_errors: n
     network = {"lhs": lhs_net, "rhs": rhs_net, "ratio": _ratio(lhs_net, rhs_net),
                "bound": design.gamma2}
     return {"network": network, "nodes": nodes}
+
+
+# ----------------------------------------------------------------------------- the runtime's spec
+
+@dataclass(frozen=True)
+class MinEnergyParams:
+    """``[estimator]`` keys of Zamani & Ugrinovskii's filters: the directed design edges [i, j] (node i
+    receives from node j) with their W, F (one matrix, or one per edge), the SDP (29) options (P, zbar_min,
+    margin, gamma2_factor, centre, solver) or a stored design_file, and the sampled filter's method,
+    substeps, hold and channel noise."""
+
+    edges: Pairs | None = None
+    W: Matrix | Matrices | None = None   # noqa: N815 - the paper's W
+    F: Matrix | Matrices | None = None   # noqa: N815 - the paper's F
+    P: str = "consensus"                 #: "consensus" = ½(𝐋 + 𝐋ᵀ) ⊗ I (reproduces Table I)
+    zbar_min: float = 0.0
+    margin: float = 1e-6
+    gamma2_factor: float = 1.1
+    centre: Literal["logmargin", "logdet"] = "logmargin"
+    solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
+    design_file: str | None = None
+    method: Literal["expm", "rk4"] = "expm"
+    substeps: int = 10
+    hold: Literal["model", "zoh"] = "model"
+    channel_noise_std: float = 0.0
+
+
+def _check(sc: Any, p: MinEnergyParams) -> None:
+    src, n = sc.source, sc.sensors.n
+    if sc.estimator.rounds != 1:
+        raise ScenarioError(src, "estimator.rounds", "the min_energy filter exchanges once per tick", "rounds = 1")
+    if not p.edges:
+        raise ScenarioError(src, "estimator.edges", "the min_energy design needs the directed edge set",
+                            "edges = [[i, j], …] (node i receives from node j)")
+    for ei, (a, b) in enumerate(p.edges):
+        if not (0 <= a < n and 0 <= b < n) or a == b:
+            raise ScenarioError(src, f"estimator.edges[{ei}]", f"[{a}, {b}] must join two different sensors",
+                                f"use ids 0 … {n - 1}")
+    if p.W is None or p.F is None:
+        raise ScenarioError(src, "estimator.W" if p.W is None else "estimator.F", "is required by min_energy")
+    if p.P != "consensus":
+        raise ScenarioError(src, "estimator.P", f"only \"consensus\" is supported, got {p.P!r}")
+    if not p.gamma2_factor > 1:
+        raise ScenarioError(src, "estimator.gamma2_factor", "Theorem 2 needs γ² > γ*²", "e.g. 1.1")
+    if p.substeps < 1:
+        raise ScenarioError(src, "estimator.substeps", "must be ≥ 1")
+    if p.zbar_min < 0 or not p.margin > 0 or p.channel_noise_std < 0:
+        raise ScenarioError(src, "estimator.zbar_min", "zbar_min ≥ 0, margin > 0 and channel_noise_std ≥ 0")
+    if sc.target.model != "continuous":
+        raise ScenarioError(src, "target.model", "the min_energy filter runs on a continuous-time plant",
+                            "model = \"continuous\"")
+
+
+def _design(sc: Any, p: MinEnergyParams, facts: GraphFacts) -> dict[str, Any]:
+    """The SDP (29) design for the scenario: loaded from ``design_file`` (checked against the scenario's
+    problem data) or solved now (supremum γ*², then a well-centred point at γ² = gamma2_factor·γ*² that
+    the filters run on)."""
+    n = sc.sensors.n
+    Cs, Ds = [sc.C_of(i) for i in range(n)], [sc.D_of(i) for i in range(n)]
+    edges = [tuple(x) for x in p.edges]
+    Ac, Bc = np.array(sc.target.A, float), np.array(sc.target.B, float)
+    W, F = np.array(p.W, float), np.array(p.F, float)
+    W = list(W) if W.ndim == 3 else W
+    F = list(F) if F.ndim == 3 else F
+    if not p.design_file:
+        dsg = design_network(Ac, Bc, Cs, Ds, W, F, edges, P=p.P, zbar_min=p.zbar_min, margin=p.margin,
+                             solver=p.solver, gamma2_factor=p.gamma2_factor, centre=p.centre)
+        return {"min_energy": dsg.to_dict()}
+    stored = facts.stored(p.design_file)
+    dsg = MinEnergyDesign.from_dict(dict(stored.get("min_energy", stored)))
+    if not dsg.problem.matches(make_problem(Ac, Bc, Cs, Ds, W, F, edges, P=p.P)):
+        raise ScenarioError(sc.source, "estimator.design_file", f"{p.design_file} was designed for other problem "
+                            "data", "re-run `flocktrack design` for this scenario")
+    return {"min_energy": dsg.to_dict()}
+
+
+def _build(sc: Any, i: int, p: MinEnergyParams, design: Mapping[str, Any]) -> MinEnergyNode:
+    if "min_energy" not in design:
+        raise ValueError("min_energy needs the SDP design (29), computed by the runtime before the run")
+    return MinEnergyNode.from_design(MinEnergyDesign.from_dict(design["min_energy"]), i,
+                                     x0=sc.initial_estimates()[i], substeps=p.substeps, method=p.method,
+                                     hold=p.hold, rng=rng_for(sc.run.seed, "agent", i, "channel_noise"),
+                                     channel_noise_std=p.channel_noise_std)
+
+
+def _summary(design: Mapping[str, Any], trace: RunTrace | None) -> dict[str, Any]:
+    """``"hinf"``: the local H∞ ratios (6) per node and the network ratio (5) measured on the run
+    (disturbances w, vᵢ, εᵢⱼ as recorded, tick grid), beside the designed γ̄ᵢ² and γ² (None when the run
+    has fewer than two complete ticks)."""
+    if trace is None or len(trace.errors) < 2:
+        return {"hinf": None}
+    dsg = MinEnergyDesign.from_dict(design["min_energy"])
+    E = trace.errors
+    K = len(E) - 1
+    eps: dict[tuple[int, int], np.ndarray] = {}
+    for (i, j) in dsg.problem.edges:
+        rows = [trace.extra(k, i, f"eps_{j}") for k in range(K)]
+        if all(r is not None for r in rows):
+            eps[(i, j)] = np.array(rows)
+    rep = performance_report(dsg, E, -E[0], trace.w, list(trace.v), eps, trace.T)
+    return {"hinf": {"gamma2_design": float(dsg.gamma2), "gamma2_star": float(dsg.gamma2_star),
+                     "network_ratio": rep["network"]["ratio"], "network_bound": rep["network"]["bound"],
+                     "node_ratio": [nd["ratio"] for nd in rep["nodes"]],
+                     "node_ratio_beta": [nd["ratio_beta"] for nd in rep["nodes"]],
+                     "node_bound": [nd["bound"] for nd in rep["nodes"]],
+                     "iqc_holds": [bool(nd["iqc_holds"]) for nd in rep["nodes"]]}}
+
+
+def _report_design(design: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    out = design["min_energy"]
+    return out, f"γ*² = {out.get('gamma2_star'):.6g} (supremum), filters designed at γ² = {out.get('gamma2'):.6g}"
+
+
+SPEC = EstimatorSpec(name="min_energy", params=MinEnergyParams, check=_check, design=_design, build=_build,
+                     summary=_summary, report_design=_report_design, per_sensor_C=True,
+                     doc="Zamani & Ugrinovskii's minimum-energy filters (20)/(21) with the SDP (29) design")

@@ -1,53 +1,79 @@
-"""Build a node's estimator from a scenario's ``[estimator]`` table (and the runtime's design).
+"""The set of estimator specs, and a node's estimator from a scenario.
 
-Estimators that need facts about the whole network (Chen's λ₀ over every switching graph) receive
-them precomputed in ``design`` (DESIGN.md: the runtime computes graph-wide designs before the run).
+Every module of this package that declares an :class:`agent.estimators.spec.EstimatorSpec` at module
+level is an estimator of the runtime: :func:`specs` finds them (a module is imported only if its source
+declares ``EstimatorSpec(``, so the fusion solvers are not loaded by every sensor). Estimators that need
+facts about the whole network (Chen's λ₀ over every switching graph, Zamani's SDP) receive them
+precomputed in ``design`` (DESIGN.md: the runtime computes graph-wide designs before the run).
 """
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
 from collections.abc import Mapping
+from functools import cache
+from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from ..scenario import Scenario
-from ..seeding import rng_for
 from .base import Estimator
+from .spec import EstimatorSpec
 
-NAMES = ("minimax", "kalman", "hinf_switching", "min_energy")
+_HERE = Path(__file__).resolve().parent
 
 
-def make_estimator(sc: Scenario, i: int, design: Mapping[str, Any] | None = None) -> Estimator:
-    """Estimator of sensor ``i`` for scenario ``sc``."""
+@cache
+def specs() -> dict[str, EstimatorSpec]:
+    """name → spec of every registered estimator, in module-name order."""
+    found: dict[str, EstimatorSpec] = {}
+    for mod in sorted(pkgutil.iter_modules([str(_HERE)]), key=lambda m: m.name):
+        if mod.name.startswith("_") or mod.ispkg or mod.name in ("spec", "registry"):
+            continue
+        if "EstimatorSpec(" not in (_HERE / f"{mod.name}.py").read_text(encoding="utf-8"):
+            continue
+        module = importlib.import_module(f"{__package__}.{mod.name}")
+        for value in vars(module).values():
+            if isinstance(value, EstimatorSpec):
+                if value.name in found and found[value.name] is not value:
+                    raise RuntimeError(f"two estimators are named {value.name!r} ({mod.name} and another module)")
+                found[value.name] = value
+    return found
+
+
+def register(spec: EstimatorSpec) -> None:
+    """Add an estimator defined outside this package (a notebook, a test, a plug-in package) to the
+    registry of this process. An estimator meant for every process of a run goes in a module of this
+    package instead (the sensor processes find it there)."""
+    have = specs()
+    if spec.name in have and have[spec.name] is not spec:
+        raise ValueError(f"an estimator named {spec.name!r} is already registered")
+    have[spec.name] = spec
+
+
+def unregister(name: str) -> None:
+    """Remove an estimator added with :func:`register`."""
+    specs().pop(name, None)
+
+
+def names() -> tuple[str, ...]:
+    """The registered estimator names (what ``[estimator] name`` and ``--estimator`` accept)."""
+    return tuple(specs())
+
+
+def default_name() -> str:
+    """The estimator of a scenario whose ``[estimator]`` table gives no name (the spec marked default)."""
+    marked = [n for n, s in specs().items() if s.default]
+    if len(marked) != 1:
+        raise RuntimeError(f"exactly one estimator spec must be the default, found {marked}")
+    return marked[0]
+
+
+def spec_of(name: str) -> EstimatorSpec:
+    """The spec called ``name`` (KeyError for an unknown name; the scenario loader checks names first)."""
+    return specs()[name]
+
+
+def make_estimator(sc: Any, i: int, design: Mapping[str, Any] | None = None) -> Estimator:
+    """Estimator of sensor ``i`` for scenario ``sc`` (with the runtime's pre-run ``design``)."""
     e = sc.estimator
-    m = sc.m
-    x0 = sc.initial_estimates()[i]
-    P0 = np.eye(m) if e.P0 is None else np.array(e.P0, float)
-    if e.name in ("minimax", "kalman"):
-        from .distributed_minimax import DistributedKalman, DistributedMinimax
-
-        if e.name == "kalman":
-            return DistributedKalman(sc.A, sc.filter_Q(), sc.C, sc.R, sc.sensors.n, x0, P0, e.rounds, e.eta,
-                                     e.resilient_f)
-        return DistributedMinimax(sc.A, sc.filter_Q(), sc.C, sc.R, np.array(e.S, float), sc.sensors.n, x0, P0,
-                                  e.rounds, e.eta, e.resilient_f)
-    if e.name == "hinf_switching":
-        from .hinf_switching import HinfSwitchingEstimator
-
-        if design is None or "K" not in design:
-            raise ValueError("hinf_switching needs the design gain K (computed by the runtime from the schedule)")
-        K = np.array(design["K"], float)
-        comm = None if e.comm_noise is None else np.array(e.comm_noise, float)
-        return HinfSwitchingEstimator(sc.A, sc.C, K, x0, comm_noise_cov=comm,
-                                      rng=rng_for(sc.run.seed, "agent", i, "comm_noise"), resilient_f=e.resilient_f)
-    if e.name == "min_energy":
-        from .min_energy import MinEnergyDesign, MinEnergyNode
-
-        if design is None or "min_energy" not in design:
-            raise ValueError("min_energy needs the SDP design (29), computed by the runtime before the run")
-        dsg = MinEnergyDesign.from_dict(design["min_energy"])
-        return MinEnergyNode.from_design(dsg, i, x0=x0, substeps=e.substeps, method=e.method, hold=e.hold,
-                                         rng=rng_for(sc.run.seed, "agent", i, "channel_noise"),
-                                         channel_noise_std=e.channel_noise_std)
-    raise ValueError(f"unknown estimator {e.name!r}; known: {', '.join(NAMES)}")
+    return spec_of(e.name).build(sc, i, e.params, design or {})
