@@ -199,11 +199,11 @@ class Scenario:
 
     # ------------------------------------------------------------------ derived model matrices
     @property
-    def A(self) -> np.ndarray:  # noqa: N802
+    def A(self) -> np.ndarray:
         return self.target_matrices()[0]
 
     @property
-    def B(self) -> np.ndarray:  # noqa: N802
+    def B(self) -> np.ndarray:
         return self.target_matrices()[1]
 
     def target_matrices(self) -> tuple[np.ndarray, np.ndarray]:
@@ -241,21 +241,21 @@ class Scenario:
         return np.ndim(self.sensors.C) == 3
 
     @property
-    def C(self) -> np.ndarray:  # noqa: N802
+    def C(self) -> np.ndarray:
         """The common measurement matrix (sensor 0's when each sensor has its own)."""
         return self.C_of(0)
 
-    def C_of(self, i: int) -> np.ndarray:  # noqa: N802
+    def C_of(self, i: int) -> np.ndarray:
         C = np.array(self.sensors.C, float)
         return C[i] if C.ndim == 3 else C
 
-    def D_of(self, i: int) -> np.ndarray | None:  # noqa: N802
+    def D_of(self, i: int) -> np.ndarray | None:
         if self.sensors.D is None:
             return None
         D = np.array(self.sensors.D, float)
         return D[i] if D.ndim == 3 else D
 
-    def R_of(self, i: int) -> np.ndarray:  # noqa: N802
+    def R_of(self, i: int) -> np.ndarray:
         """Measurement-noise covariance of sensor i: R, or v_std²·DᵢDᵢᵀ."""
         D = self.D_of(i)
         if D is not None:
@@ -263,16 +263,16 @@ class Scenario:
         return np.array(self.sensors.R, float)
 
     @property
-    def R(self) -> np.ndarray:  # noqa: N802
+    def R(self) -> np.ndarray:
         return self.R_of(0)
 
     @property
-    def Qw(self) -> np.ndarray:  # noqa: N802
+    def Qw(self) -> np.ndarray:
         """Covariance of the target's process noise w (zero for a noise-free target)."""
         B = self.B
         return np.zeros((B.shape[1], B.shape[1])) if self.target.Q is None else np.array(self.target.Q, float)
 
-    def filter_Q(self) -> np.ndarray:  # noqa: N802
+    def filter_Q(self) -> np.ndarray:
         """Filter process noise in state space: estimator.Q if given, else B·target.Q·Bᵀ."""
         if self.estimator.Q is not None:
             return np.array(self.estimator.Q, float)

@@ -16,9 +16,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent.estimators.base import TickContext  # noqa: E402
-from agent.estimators.distributed_minimax import DistributedMinimax  # noqa: E402
-from agent.models import double_integrator  # noqa: E402
+from agent.estimators.base import TickContext
+from agent.estimators.distributed_minimax import DistributedMinimax
+from agent.models import double_integrator
 
 
 def per_round_us(f: int, degree: int, reps: int = 2000) -> float:

@@ -33,16 +33,16 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as python -m dashboards does
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent import wire  # noqa: E402
-from agent.bus import BusStats, deliver  # noqa: E402
-from dashboards import plots  # noqa: E402
-from dashboards.live import DashboardUI, LiveDashboard, decoded_key  # noqa: E402
-from dashboards.state import DashboardState, RunInfo, synthetic_tick  # noqa: E402
+from agent import wire
+from agent.bus import BusStats, deliver
+from dashboards import plots
+from dashboards.live import DashboardUI, LiveDashboard, decoded_key
+from dashboards.state import DashboardState, RunInfo, synthetic_tick
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -22,13 +22,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent import wire  # noqa: E402
-from agent.scenario import parse_scenario  # noqa: E402
-from agent.scenario import scenario_data  # noqa: E402
-from flocktrack.launch import free_port, open_router  # noqa: E402
-from flocktrack.record import read_recording  # noqa: E402
-from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir  # noqa: E402
-from topology.graph import neighbour_lists, range_adjacency  # noqa: E402
+from agent import wire
+from agent.scenario import parse_scenario
+from agent.scenario import scenario_data
+from flocktrack.launch import free_port, open_router
+from flocktrack.record import read_recording
+from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir
+from topology.graph import neighbour_lists, range_adjacency
 
 
 def scenario(n: int, ticks: int, rounds: int):

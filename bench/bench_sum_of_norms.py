@@ -6,8 +6,8 @@ Windows come from the Table I simulation (scenarios/carrillo_uav.toml, 10 % outl
 axes). For every window the solvers run back to back (interleaved, so machine load hits all of them
 alike) on the same built problem:
 
-* ``ipm``          the default solver's compiled call (``son_solvers.ipm_raw``: both axes, banded chain IPM);
-* ``ipm_wrapped``  ``son_solvers.solve_ipm`` (the same plus the common objective/KKT evaluation);
+* ``ipm``          the default solver's compiled call (``son_ipm.ipm_raw``: both axes, banded chain IPM);
+* ``ipm_wrapped``  ``son_ipm.solve_ipm`` (the same plus the common objective/KKT evaluation);
 * ``estimator``    ``SumOfNormsEstimator.solve()`` end to end: build H from the window, solve, decode;
 * ``osqp``         (10) as a QP, set up once per window shape then updated (``OsqpSolver``);
 * ``cvxpy_clarabel`` cvxpy (DPP, compiled once per shape) + Clarabel, wall time of ``problem.solve``;
@@ -34,10 +34,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent.estimators.son_solvers import (CvxpyReference, OsqpSolver, ipm_raw, solve_ipm,  # noqa: E402
-                                          solve_ls)
-from agent.estimators.sum_of_norms import SumOfNormsEstimator  # noqa: E402
-from agent.models_uav import config_from_tables  # noqa: E402
+from agent.estimators.son_ipm import ipm_raw, solve_ipm
+from agent.estimators.son_reference import CvxpyReference, OsqpSolver, solve_ls
+from agent.estimators.sum_of_norms import SumOfNormsEstimator
+from agent.models_uav import config_from_tables
 
 
 def windows(W: int, count: int, seed: int = 0):

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from flocktrack.experiment import SweepConfig, parse_grid, run_sweep  # noqa: E402
+from flocktrack.experiment import SweepConfig, parse_grid, run_sweep
 
 DOCS = ROOT / "docs"
 

@@ -27,7 +27,7 @@ from agent.scenario import ScenarioError, load_scenario, parse_scenario, scenari
 class _Parser(argparse.ArgumentParser):
     """argparse with "did you mean …?" for a misspelt sub-command or choice."""
 
-    def error(self, message: str):  # noqa: D102 - argparse's hook
+    def error(self, message: str):
         import re
 
         from agent.suggest import did_you_mean

@@ -249,7 +249,7 @@ def plan(cfg: SweepConfig) -> tuple[list[RunSpec], dict[int, str]]:
         data = run_data(cfg, r)  # a missing or malformed scenario file raises here, for every cell alike
         try:
             parse_scenario(data, cfg.scenario)
-        except Exception as exc:  # noqa: BLE001 — any invalid cell is recorded, not fatal
+        except Exception as exc:
             errors[ci] = exc
     sections = {a.key.partition(".")[0] for a in cfg.axes}
     for exc in errors.values():
@@ -346,19 +346,9 @@ def _is_done(run_dir: Path, data: dict) -> str:
     return "done" if same else "stale"
 
 
-def run_sweep(cfg: SweepConfig) -> dict:
-    """Plan, run what is not done, write ``results.csv``, ``summary.csv``, ``sweep.json`` and figures.
-
-    Returns the ``sweep.json`` content. Raises :class:`ScenarioError` before running anything when the
-    grid is invalid (see :func:`plan`)."""
-    started = datetime.now(timezone.utc)
-    t0 = time.perf_counter()
-    specs, cell_errors = plan(cfg)
-    out = Path(cfg.out)
-    runs_dir = out / "runs"
-    runs_dir.mkdir(parents=True, exist_ok=True)
-    jobs = max(1, cfg.jobs or os.cpu_count() or 1)
-
+def _triage(cfg: SweepConfig, specs: list, cell_errors: dict, runs_dir: Path) -> tuple[dict, list, int, int]:
+    """Which runs are invalid (failed before running), done (resumed), stale or new: (results so far,
+    tasks to run, how many resumed, how many stale)."""
     results: dict[str, dict] = {}
     tasks: list[dict] = []
     skipped = stale = 0
@@ -376,7 +366,23 @@ def run_sweep(cfg: SweepConfig) -> dict:
             continue
         stale += state == "stale"
         tasks.append({"run_id": r.run_id, "dir": str(runs_dir / r.run_id), "data": data, "source": cfg.scenario})
+    return results, tasks, skipped, stale
 
+
+def run_sweep(cfg: SweepConfig) -> dict:
+    """Plan, run what is not done, write ``results.csv``, ``summary.csv``, ``sweep.json`` and figures.
+
+    Returns the ``sweep.json`` content. Raises :class:`ScenarioError` before running anything when the
+    grid is invalid (see :func:`plan`)."""
+    started = datetime.now(timezone.utc)
+    t0 = time.perf_counter()
+    specs, cell_errors = plan(cfg)
+    out = Path(cfg.out)
+    runs_dir = out / "runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    jobs = max(1, cfg.jobs or os.cpu_count() or 1)
+
+    results, tasks, skipped, stale = _triage(cfg, specs, cell_errors, runs_dir)
     prog = SweepProgress(len(specs), cfg.progress)
     n_cells = len({r.cell_index for r in specs})
     prog.note(f"sweep {cfg.scenario}: {n_cells} cells × {len(cfg.seeds)} seeds = {len(specs)} runs, "
@@ -410,10 +416,19 @@ def run_sweep(cfg: SweepConfig) -> dict:
         except Exception as exc:  # figures are a view; never lose the CSV to a plotting problem
             fig_error = f"{type(exc).__name__}: {exc}"
             prog.note(f"figures failed: {fig_error}")
+    meta = _sweep_meta(cfg, specs, results, jobs, skipped, stale, len(tasks), started, wall)
+    meta.update(figures=figures, figures_error=fig_error)
+    (out / "sweep.json").write_text(json.dumps(meta, indent=2, default=_json_default) + "\n")
+    return meta
+
+
+def _sweep_meta(cfg: SweepConfig, specs: list, results: dict, jobs: int, skipped: int, stale: int,
+                executed: int, started: datetime, wall: float) -> dict:
+    """``sweep.json``: the grid, what ran, what failed and how long it took."""
     failures = [{"run_id": r.run_id, "cell": {a.key: v for a, v in zip(cfg.axes, r.cell)}, "seed": r.seed,
                  "error": results[r.run_id].get("error"), "traceback": results[r.run_id].get("traceback")}
                 for r in specs if results[r.run_id]["status"] != "ok"]
-    meta = {
+    return {
         "scenario": cfg.scenario,
         "grid": {a.key: list(a.values) for a in cfg.axes},
         "labels": {a.key: a.label for a in cfg.axes},
@@ -426,19 +441,17 @@ def run_sweep(cfg: SweepConfig) -> dict:
         "failed": len(failures),
         "resumed": skipped,
         "rerun_stale": stale,
-        "executed": len(tasks),
+        "executed": executed,
         "started": started.isoformat(timespec="seconds"),
         "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "wall_s": wall,
         "run_wall_s_total": sum(float(results[r.run_id].get("wall_s") or 0.0) for r in specs),
         "run_wall_s": {r.run_id: results[r.run_id].get("wall_s") for r in specs},
         "failures": failures,
-        "figures": figures,
-        "figures_error": fig_error,
+        "figures": [],
+        "figures_error": None,
         "outputs": {"results": "results.csv", "summary": "summary.csv", "runs": "runs/", "figures": "figures/"},
     }
-    (out / "sweep.json").write_text(json.dumps(meta, indent=2, default=_json_default) + "\n")
-    return meta
 
 
 def _worker_init() -> None:
@@ -484,7 +497,7 @@ def _run_pool(tasks: list[dict], jobs: int, results: dict, prog: SweepProgress) 
                         else:
                             pending.append(t)
                             continue
-                    except Exception as exc:  # noqa: BLE001 — e.g. an unpicklable result
+                    except Exception as exc:
                         res = {"run_id": t["run_id"], "status": "failed", "wall_s": 0.0,
                                "error": f"{type(exc).__name__}: {exc}"}
                     results[res["run_id"]] = res

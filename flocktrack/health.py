@@ -39,7 +39,7 @@ def check_http(url: str, timeout: float) -> str | None:
     import urllib.request
 
     try:
-        with urllib.request.urlopen(url, timeout=timeout) as resp:  # noqa: S310 (a probe of our own page)
+        with urllib.request.urlopen(url, timeout=timeout) as resp:
             return None if resp.status < 400 else f"http {url}: status {resp.status}"
     except (urllib.error.URLError, OSError) as exc:
         return f"http {url}: {exc}"

@@ -18,7 +18,6 @@ import logging
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -114,8 +113,6 @@ def read_recording(path: str | Path) -> Recording:
         complete = False
         msgs, rejected = [], 0
         channels: dict[int, str] = {}
-        from mcap.data_stream import ReadDataStream  # noqa: F401  (keeps the mcap import surface explicit)
-
         with open(path, "rb") as f:
             try:
                 for rec in StreamReader(f, skip_magic=False).records:

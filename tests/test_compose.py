@@ -103,7 +103,7 @@ def test_regenerated_into_a_tmp_dir_matches_the_committed_file(tmp_path, committ
         assert ctx == ROOT.resolve()
         assert (ctx / svc["build"]["dockerfile"]).resolve() == (tmp_path / "Dockerfile").resolve()
     # ... and is the only difference
-    strip = lambda d: {**d, "services": {k: {kk: vv for kk, vv in v.items() if kk != "build"}  # noqa: E731
+    strip = lambda d: {**d, "services": {k: {kk: vv for kk, vv in v.items() if kk != "build"}
                                          for k, v in d["services"].items()}}
     assert strip(fresh) == strip(committed)
     # --check notices a stale file, an input file included
@@ -272,7 +272,7 @@ def test_services_are_the_launchers_children(tmp_path, restart, max_restarts):
             cmd = cmd[2].split("exec ", 1)[1].replace(' "$@"', "").split()
         got = cmd[1:]
         # flags the containers need on top of the launcher's
-        for flag, value in (("--host", "0.0.0.0"), ("--startup-timeout", "300")):
+        for flag, _value in (("--host", "0.0.0.0"), ("--startup-timeout", "300")):
             if flag in got:
                 i = got.index(flag)
                 got = got[:i] + got[i + 2:]

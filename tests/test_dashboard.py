@@ -467,7 +467,7 @@ def test_camera_reports_tell_the_users_moves_from_ours():
         v.remember(seq, (seq, -30.0, 40.0), (seq - 1.0, 0.0, 0.0))      # position (+ the look-at moved along)
         v.remember(seq, None, (float(seq), 0.0, 0.0))
     tol = 1e-3 * 50
-    P = lambda *x: np.array(x, float)  # noqa: E731
+    P = lambda *x: np.array(x, float)
     assert v.ours(P(3, -30, 40), P(3, 0, 0), tol) == 3                  # the last command
     assert v.ours(P(2, -30, 40), P(3, 0, 0), tol) == 2                  # its look-at overtook its position
     assert v.ours(P(0, -30, 40), P(0, 0, 0), tol) == 0                  # the initial camera, applied late

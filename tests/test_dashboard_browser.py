@@ -42,13 +42,13 @@ pytestmark = pytest.mark.slow
 def _require_browser() -> None:
     """Playwright (a test dependency) and Debian's chromium — installed by tests/provision.py when absent;
     skipped with how to enable them where that cannot be done (failed under CI)."""
-    from provision import Missing, chromium, require
+    from provision import MissingDependencyError, chromium, require
 
     def both():
-        try:
-            import playwright.sync_api  # noqa: F401
-        except ImportError:
-            raise Missing("python package playwright not found: pip install -e '.[test]'") from None
+        import importlib.util
+
+        if importlib.util.find_spec("playwright") is None:
+            raise MissingDependencyError("python package playwright not found: pip install -e '.[test]'") from None
         return chromium()
 
     require(both)

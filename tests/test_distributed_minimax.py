@@ -141,7 +141,7 @@ def run_intelligent(cls, rounds, steps=2000, seed=0, adj=None):
 def test_intelligent_target_distributed_kalman_diverges_minimax_bounded():
     ek = run_intelligent(DistributedKalman, rounds=1, steps=1500)
     em = run_intelligent(DistributedMinimax, rounds=1, steps=1500)
-    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
+    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))
     assert rms(ek[-200:]) > 100 * rms(ek[:200])
     assert em.max() < 1.0
 
@@ -154,7 +154,7 @@ def test_dropped_payload_does_not_crash():
     x = X0_TARGET.copy()
     for k in range(30):
         ys = [sensor.measure(x, 1.0, rng) for _ in range(N)]
-        tick(nodes, adj, ys, k, drop=lambda r, i, j: (r + i + j + k) % 4 == 0)
+        tick(nodes, adj, ys, k, drop=lambda r, i, j, k=k: (r + i + j + k) % 4 == 0)
         x = A @ x
     assert all(np.all(np.isfinite(nd.x)) for nd in nodes)
     assert all(nd.dropped > 0 for nd in nodes if adj[nodes.index(nd)].sum() > 0)

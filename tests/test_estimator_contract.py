@@ -113,7 +113,7 @@ def test_malformed_payloads_are_dropped_links(name):
             else:
                 q[key] = "x"
             poisoned[j] = q
-        x = _tick(sc, est, 0, _y(sc, 0), lambda r: poisoned)
+        x = _tick(sc, est, 0, _y(sc, 0), lambda r, p=poisoned: p)
         np.testing.assert_array_equal(x, x_dropped, err_msg=f"{name}: a {bad} payload is not a dropped link")
 
 

@@ -86,7 +86,7 @@ def test_world_sensor_and_target_faults_over_zenoh(tmp_path):
     assert np.std(res5[140:160]) > 4 * np.std(res5[:100])
     # evasive manoeuvre: the target's heading turns in the window, not before
     v = {k: truth[k][2:4] for k in truth}
-    ang = lambda a, b: abs(np.arctan2(a[0] * b[1] - a[1] * b[0], a @ b))  # noqa: E731
+    ang = lambda a, b: abs(np.arctan2(a[0] * b[1] - a[1] * b[0], a @ b))
     assert ang(v[165], v[180]) > 5 * max(ang(v[145], v[160]), 1e-3)
     # receiver-side counters: delayed, duplicated, reordered payloads were really delayed/duplicated/reordered
     stats = {p.stem: json.loads(p.read_text()).get("role", {}) for p in (tmp_path / "stats").glob("agent_*.json")}
@@ -392,7 +392,7 @@ def test_lockstep_world_holds_a_process_fault_tick_for_the_launcher():
         w.on_member(*m, True)
     w.start()
     bus.drain()
-    ks = lambda: [t.k for t in seen["tick"]]   # noqa: E731
+    ks = lambda: [t.k for t in seen["tick"]]
     for _ in range(3):
         w.on_deadline()
         bus.drain()

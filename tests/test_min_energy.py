@@ -259,11 +259,11 @@ def test_riccati_step_is_exact():
     Q0 = np.eye(3)
     h = 0.05
     Qe = riccati_step(Q0, scipy.linalg.expm(h * riccati_hamiltonian(A, M, S)))
-    f = lambda Q: A @ Q + Q @ A.T - Q @ M @ Q + S  # noqa: E731
+    f = lambda Q: A @ Q + Q @ A.T - Q @ M @ Q + S
     Q, k = Q0.copy(), 2000
     for _ in range(k):
         dt = h / k
-        k1 = f(Q); k2 = f(Q + dt / 2 * k1); k3 = f(Q + dt / 2 * k2); k4 = f(Q + dt * k3)  # noqa: E702
+        k1 = f(Q); k2 = f(Q + dt / 2 * k1); k3 = f(Q + dt / 2 * k2); k4 = f(Q + dt * k3)
         Q = Q + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     assert np.max(np.abs(Qe - Q)) < 1e-10
 

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 
-from agent.scenario import ScenarioError
 from flocktrack.cli import main
 from test_zenoh_runtime import assert_same_summary
 

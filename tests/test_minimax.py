@@ -121,7 +121,7 @@ def run_intelligent(S_, T, seed, steps=2000, ke=0.04):
 def test_intelligent_target_kalman_diverges_minimax_bounded(seed):
     ek = run_intelligent(None, 0.04, seed)
     em = run_intelligent(S, 0.04, seed)
-    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
+    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))
     assert rms(ek[-200:]) > 100 * rms(ek[:200])
     assert ek[-1] > 100.0
     assert em.max() < 1.0

@@ -19,7 +19,7 @@ from flocktrack.run import run_inproc_to_dir
 from flocktrack.secure import MESH_DIR, mesh_configs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import netns  # noqa: E402
+import netns
 
 ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "scenarios"
@@ -63,7 +63,7 @@ def test_committed_mesh_configs_are_the_generated_ones(tmp_path):
     import zenoh
 
     paths = mesh_configs([("a", "192.0.2.1"), ("b", "192.0.2.2"), ("c", "192.0.2.3")], tmp_path)
-    for h, p in paths.items():
+    for p in paths.values():
         assert (MESH_DIR / p.name).read_text() == p.read_text(), f"regenerate broker_cfg/mesh/{p.name}"
         zenoh.Config.from_file(str(MESH_DIR / p.name))
     c = json.loads("\n".join(paths["c"].read_text().splitlines()[1:]))

@@ -3,16 +3,23 @@ cvxpy + Clarabel reference, the least-squares limit, sliding-window bookkeeping,
 
 from __future__ import annotations
 
+import ast
+import importlib
 import math
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
+from numba.core.dispatcher import Dispatcher
 from scipy.optimize import minimize_scalar
 
 from agent.estimators.fusion_baselines import BatchLeastSquares, KalmanCV
-from agent.estimators.son_solvers import (CvxpyReference, HuberProblem, OsqpSolver, delta_from_lambda,
-                                          lambda_from_delta, solve_ipm, solve_ls)
+from agent.estimators.son_banded import bandwidth
+from agent.estimators.son_ipm import solve_ipm
+from agent.estimators.son_jit import FamilyCache, family_stamp
+from agent.estimators.son_problem import HuberProblem, delta_from_lambda, lambda_from_delta
+from agent.estimators.son_reference import CvxpyReference, OsqpSolver, solve_ls
 from agent.estimators.sum_of_norms import (RelativeMeasurement, SumOfNormsEstimator, build_joint, build_split,
                                            motion_whitener, whitener)
 from agent.models_uav import UavConfig, UavRelativeSim, config_from_tables
@@ -41,7 +48,9 @@ def test_lambda_delta_roundtrip_and_huber_elimination():
             assert lambda_from_delta(d, c) == pytest.approx(lam, rel=1e-12)
             # minimising (10) over one ℓ̄ gives (1/λ²c²)·huber_δ(r) with δ = c√2λ²/(1−λ)
             for r in rng.normal(0, 3, size=5) * (1 + 10 * rng.random(5)):
-                f = lambda l: (r / c - l) ** 2 / (2 * lam * lam) + math.sqrt(2) / (1 - lam) * abs(l)  # noqa: E731
+                def f(ell, r=r, c=c, lam=lam):  # (10) for one row
+                    return (r / c - ell) ** 2 / (2 * lam * lam) + math.sqrt(2) / (1 - lam) * abs(ell)
+
                 soft = np.sign(r) * max(abs(r) - d, 0.0) / c
                 best = minimize_scalar(f, bracket=(soft - 1, soft + 1), tol=1e-12).fun
                 assert f(soft) == pytest.approx(huber(r, d) / (lam * lam * c * c), rel=1e-9, abs=1e-12)
@@ -285,11 +294,33 @@ def test_joint_builder_matches_split_for_diagonal_covariances():
     args = (w.t, w.seq, w.kind, w.z, w.gps)
     s = build_split(*args, w.wr, w.wg, w.count, est.q, est.dt_floor, 0, 1e3)
     j = build_joint(*args, w.Wr, w.Wg, w.count, est.q, est.dt_floor, 0, 1e3)
-    from agent.estimators.son_solvers import bandwidth
-
     ps = HuberProblem(s[1], s[2], s[3], s[4], int(s[5]), int(bandwidth(s[1], s[2])), 0.2)
     pj = HuberProblem(j[1], j[2], j[3], j[4], int(j[5]), int(bandwidth(j[1], j[2])), 0.2)
     assert solve_ipm(ps).objective == pytest.approx(solve_ipm(pj).objective, rel=1e-9)
+
+
+def test_every_kernel_shares_the_cache_family():
+    """Every compiled son_* function is declared with son_jit.kernel: a cached caller embeds its callees,
+    so an edit to any son_* file must invalidate the cache of every kernel (son_jit's module doc)."""
+    here = Path(importlib.import_module("agent.estimators.son_jit").__file__).parent
+    files = sorted(p.name for p in here.glob("son_*.py"))
+    assert [f for f, _, _ in family_stamp()] == files
+    kernels = 0
+    for name in files:
+        if name == "son_jit.py":
+            continue
+        tree = ast.parse((here / name).read_text())
+        for node in ast.walk(tree):  # no numba decorator but son_jit's
+            if isinstance(node, ast.ImportFrom):
+                assert not (node.module or "").startswith("numba"), name
+            elif isinstance(node, ast.Import):
+                assert not any(a.name.startswith("numba") for a in node.names), name
+        mod = importlib.import_module(f"agent.estimators.{name[:-3]}")
+        for obj in vars(mod).values():
+            if isinstance(obj, Dispatcher) and obj.__module__ == mod.__name__:
+                assert isinstance(obj._cache, FamilyCache), (name, obj.__name__)
+                kernels += 1
+    assert kernels >= 30
 
 
 def test_single_node_and_agent0_windows():

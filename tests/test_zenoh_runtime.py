@@ -1,7 +1,6 @@
 """The process-per-agent runtime over a real Zenoh router on loopback, with real OS processes."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -9,11 +8,9 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from agent.bus import ZenohBus
-from agent.scenario import load_scenario
 from agent.scenario import scenario_data
 from flocktrack.cli import main
 from flocktrack.record import read_recording

@@ -152,7 +152,7 @@ def target_connected(adj: np.ndarray, b: Sequence[float] | np.ndarray) -> bool:
     return all(any(bb[i] > 0 for i in comp) for comp in components(a))
 
 
-def lambda0(H_list: Sequence[np.ndarray]) -> float:  # noqa: N803 - paper notation
+def lambda0(H_list: Sequence[np.ndarray]) -> float:
     """λ₀ of Chen's Lemma 2.1: the smallest eigenvalue over all Hₚ in ``H_list``.
 
     Values within 1e-12·max(1, ‖Hₚ‖) of zero are returned as exactly 0.0 (a component that never
@@ -218,7 +218,7 @@ class GraphSpec:
             a[i, j] = a[j, i] = g
         return a
 
-    def H(self) -> np.ndarray:  # noqa: N802 - paper notation
+    def H(self) -> np.ndarray:
         """Chen's Hₚ = Lₚ + Bₚ."""
         return h_matrix(self.adjacency(), self.b)
 
@@ -273,7 +273,7 @@ class PeriodicSchedule:
         """The graph in force at tick k."""
         return self.graphs[self.index_at(k)]
 
-    def H_list(self) -> list[np.ndarray]:  # noqa: N802 - paper notation
+    def H_list(self) -> list[np.ndarray]:
         """[Hₚ for each distinct graph p], the input of Lemma 2.1 / Theorem 3.3."""
         return [g.H() for g in self.graphs]
 

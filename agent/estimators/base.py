@@ -78,13 +78,21 @@ class Estimator(ABC):
     def finish(self) -> None:
         """Update the estimate; afterwards :attr:`x` is the estimate for tick k+1."""
 
+    def predict_only(self, ctx: TickContext, q: int) -> None:
+        """A tick without information (the node's tick or truth lost, or the world marks it dead): the
+        estimator's rounds with b = 0, no measurement (``q`` zeros) and no neighbours — its prediction."""
+        self.start(ctx, np.zeros(q))
+        for r in range(self.rounds):
+            self.absorb(r, {})
+        self.finish()
+
     @property
     @abstractmethod
     def x(self) -> np.ndarray:
         """Current state estimate."""
 
     @property
-    def P(self) -> np.ndarray | None:  # noqa: N802 - paper notation
+    def P(self) -> np.ndarray | None:
         """Current error covariance (or Riccati matrix) if the estimator has one."""
         return None
 
@@ -106,7 +114,7 @@ class Estimator(ABC):
     def _set_x(self, x: np.ndarray) -> None:  # pragma: no cover - overridden where supported
         raise NotImplementedError
 
-    def _set_P(self, P: np.ndarray) -> None:  # noqa: N802 - estimators without a covariance ignore it
+    def _set_P(self, P: np.ndarray) -> None:  # noqa: B027 - a no-op on purpose: estimators without a covariance ignore it
         """Overwrite the covariance/Riccati matrix (only estimators that have one)."""
 
 

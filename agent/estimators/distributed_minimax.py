@@ -110,7 +110,7 @@ class DistributedMinimax(Estimator):
         return self._x
 
     @property
-    def P(self) -> np.ndarray:  # noqa: N802 - paper notation
+    def P(self) -> np.ndarray:
         return self._P
 
     @property
@@ -122,7 +122,7 @@ class DistributedMinimax(Estimator):
         m = self.A.shape[0]
         return {"chi1": (m, m), "chi2": (m,), "chi3": (m, m)}
 
-    def _set_P(self, P: np.ndarray) -> None:  # noqa: N802
+    def _set_P(self, P: np.ndarray) -> None:
         self._P = sym(np.array(P, dtype=float))
 
     def _set_x(self, x: np.ndarray) -> None:

@@ -87,7 +87,7 @@ def _check_model(A, C, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return A, C, Q, R
 
 
-def _W(C: np.ndarray, R: np.ndarray) -> np.ndarray:  # noqa: N802
+def _W(C: np.ndarray, R: np.ndarray) -> np.ndarray:
     """W = Cᵀ R⁻¹ C (Theorem 3.9)."""
     return sym(C.T @ np.linalg.solve(R, C))
 
@@ -174,7 +174,7 @@ def riccati_admissible(P, C, R, gamma: float) -> bool:
 
 # ------------------------------------------------------------------------------ Lemma 2.1, Thm 3.3
 
-def lambda0(H_list: Sequence[np.ndarray]) -> float:  # noqa: N803 - paper notation
+def lambda0(H_list: Sequence[np.ndarray]) -> float:
     """λ₀ of Lemma 2.1: the smallest eigenvalue over all Hₚ = Lₚ + Bₚ.
 
     Values within 1e-12·max(1, ‖Hₚ‖) of zero are returned as exactly 0.0. (Same as
@@ -456,11 +456,11 @@ class HinfSwitchingEstimator(Estimator):
         return self._x.copy()
 
     @property
-    def P(self) -> None:  # noqa: N802 - paper notation
+    def P(self) -> None:
         return None
 
     @property
-    def K(self) -> np.ndarray:  # noqa: N802 - paper notation
+    def K(self) -> np.ndarray:
         return self._K.copy()
 
     def payload_shapes(self) -> dict[str, tuple[int, ...]]:
@@ -479,8 +479,8 @@ class HinfParams:
     wᵢ₂, and λ₀ (a lower bound on λ_min(L + B); a range topology must give it, a schedule's graphs give it)."""
 
     gamma: float = 0.1
-    R_design: Matrix | None = None   # noqa: N815 - the paper's R
-    Q_design: Matrix | None = None   # noqa: N815 - the paper's Q
+    R_design: Matrix | None = None
+    Q_design: Matrix | None = None
     comm_noise: Matrix | None = None
     lambda0: float | None = None
 

@@ -83,7 +83,7 @@ import numpy as np
 import scipy.linalg
 
 from agent.estimators.base import Estimator, Payload, TickContext, valid_inbox
-from agent.estimators.min_energy_design import (  # noqa: F401 - re-exported API
+from agent.estimators.min_energy_design import (
     DesignError, MinEnergyDesign, NetworkProblem, NodeDesign, check_design, check_point, consensus_weight,
     design_network, make_problem, node_ranges, solve_supremum, table_row,
 )
@@ -302,16 +302,16 @@ class MinEnergyNode(Estimator):
         return self._x.copy()
 
     @property
-    def P(self) -> np.ndarray:  # noqa: N802 - paper notation
+    def P(self) -> np.ndarray:
         """The Riccati matrix Qᵢ of (20) at the current time."""
         return self._Q.copy()
 
     @property
-    def Q(self) -> np.ndarray:  # noqa: N802 - paper notation
+    def Q(self) -> np.ndarray:
         return self._Q.copy()
 
     @property
-    def H(self) -> np.ndarray:  # noqa: N802 - paper notation
+    def H(self) -> np.ndarray:
         """Hᵢ = CᵢᵀEᵢ⁻¹Cᵢ + Σ_{j∈Nᵢ} WᵢⱼᵀΥᵢⱼWᵢⱼ (all design neighbours): QᵢHᵢ sets the filter's speed."""
         return self._H_design.copy()
 
@@ -553,8 +553,8 @@ class MinEnergyParams:
     substeps, hold and channel noise."""
 
     edges: Pairs | None = None
-    W: Matrix | Matrices | None = None   # noqa: N815 - the paper's W
-    F: Matrix | Matrices | None = None   # noqa: N815 - the paper's F
+    W: Matrix | Matrices | None = None
+    F: Matrix | Matrices | None = None
     P: str = "consensus"                 #: "consensus" = ½(𝐋 + 𝐋ᵀ) ⊗ I (reproduces Table I)
     zbar_min: float = 0.0
     margin: float = 1e-6

@@ -127,10 +127,10 @@ class NetworkProblem:
     def nbrs(self) -> tuple[tuple[int, ...], ...]:
         return tuple(tuple(sorted(j for (i, j) in self.edges if i == k)) for k in range(self.N))
 
-    def E(self, i: int) -> np.ndarray:  # noqa: N802
+    def E(self, i: int) -> np.ndarray:
         return self.D[i] @ self.D[i].T
 
-    def G(self, i: int, j: int) -> np.ndarray:  # noqa: N802
+    def G(self, i: int, j: int) -> np.ndarray:
         F = self.F[(i, j)]
         return F @ F.T
 
@@ -307,7 +307,7 @@ class MinEnergyDesign:
     info: Mapping[str, Any] = field(default_factory=dict)
 
     @property
-    def N(self) -> int:  # noqa: N802
+    def N(self) -> int:
         return self.problem.N
 
     @property
@@ -381,92 +381,111 @@ class _SDP:
 
         self.cp = cp
         self.prob = prob
-        n, N, m = prob.n, prob.N, prob.B.shape[1]
-        A, B = prob.A, prob.B
-        nb = prob.nbrs
-        I_n = np.eye(n)
+        n, N = prob.n, prob.N
         self.s = cp.Variable(name="s") if s_fixed is None else None
-        s = self.s if s_fixed is None else float(s_fixed)
+        self._s = self.s if s_fixed is None else float(s_fixed)
         self.g = cp.Variable(N, name="g")
         self.Y = [cp.Variable((n, n), symmetric=True, name=f"Y{i}") for i in range(N)]
         self.U = {e: cp.Variable((prob.W[e].shape[0],) * 2, symmetric=True, name=f"U{e}") for e in prob.edges}
         self.tau = {e: cp.Variable(name=f"tau{e}") for e in prob.edges}
-        cons: list[Any] = []
+        self.constraints: list[Any] = []
         self.strict: list[tuple[str, Any]] = []     # (kind, expression that must be ≻ 0)
         self.slacks: list[Any] = []
-
-        def strict(kind: str, X: Any) -> None:
-            if mode == "logmargin":
-                t = cp.Variable(name=f"t_{kind}_{len(self.slacks)}")
-                self.slacks.append(t)
-                lo: Any = t
-            else:
-                lo = margin
-            if X.shape and X.shape[0] > 1:
-                cons.append(0.5 * (X + X.T) >> lo * np.eye(X.shape[0]))
-            else:
-                cons.append(cp.reshape(X, (), order="F") >= lo if X.shape else X >= lo)
-            self.strict.append((kind, X))
-
+        self._mode, self._margin = mode, margin
         for i in range(N):
-            taus = [self.tau[(i, j)] for j in nb[i]]
-            tsum = sum(taus) if taus else 0.0
-            CEC = prob.C[i].T @ np.linalg.inv(prob.E(i)) @ prob.C[i]
-            WUW = sum((prob.W[(i, j)].T @ self.U[(i, j)] @ prob.W[(i, j)] for j in nb[i]), np.zeros((n, n)))
-            L11 = A.T @ self.Y[i] + self.Y[i] @ A + (self.g[i] + tsum) * I_n - CEC - WUW
-            L12 = self.Y[i] @ B
-            L22 = (tsum - 1.0) * np.eye(m)
-            strict("lmi26", -cp.bmat([[L11, L12], [L12.T, L22]]))            # (26)
-            strict("Y", self.Y[i])
-            strict("g", self.g[i])
-            if taus:
-                strict("sum_tau", 1.0 - tsum)                                  # (16)
-            for j in nb[i]:
-                e = (i, j)
-                G_inv = np.linalg.inv(prob.G(i, j))
-                strict("tau", self.tau[e])
-                strict("U", self.U[e])
-                strict("Ginv_minus_U", G_inv - self.U[e])
-                if zbar_min > 0:                                               # Z̄ᵢⱼ ≻ z₀I
-                    p = G_inv.shape[0]
-                    strict("zbar_lmi", cp.bmat([[G_inv - self.U[e], G_inv],
-                                                [G_inv, G_inv + (self.tau[e] / zbar_min) * np.eye(p)]]))
-        # (27): Θ̄ ≻ 0
-        sizes = [n + sum(prob.W[(i, j)].shape[0] for j in nb[i]) for i in range(N)]
+            self._node_constraints(i, zbar_min)
+        self._strict("theta", self._theta())                                   # (27): Θ̄ ≻ 0
+        if self.s is not None:
+            self.constraints.append(self.s >= 0)
+
+    def _strict(self, kind: str, X: Any) -> None:
+        """X ≻ 0 as X ⪰ margin·I, or X ⪰ tₖI with a slack tₖ of its own (``mode="logmargin"``)."""
+        cp = self.cp
+        if self._mode == "logmargin":
+            t = cp.Variable(name=f"t_{kind}_{len(self.slacks)}")
+            self.slacks.append(t)
+            lo: Any = t
+        else:
+            lo = self._margin
+        if X.shape and X.shape[0] > 1:
+            self.constraints.append(0.5 * (X + X.T) >> lo * np.eye(X.shape[0]))
+        else:
+            self.constraints.append(cp.reshape(X, (), order="F") >= lo if X.shape else X >= lo)
+        self.strict.append((kind, X))
+
+    def _tau_sum(self, i: int) -> Any:
+        taus = [self.tau[(i, j)] for j in self.prob.nbrs[i]]
+        return sum(taus) if taus else 0.0
+
+    def _wuw(self, i: int) -> Any:
+        """Σⱼ Wᵢⱼᵀ Uᵢⱼ Wᵢⱼ over node i's neighbours."""
+        prob, n = self.prob, self.prob.n
+        return sum((prob.W[(i, j)].T @ self.U[(i, j)] @ prob.W[(i, j)] for j in prob.nbrs[i]), np.zeros((n, n)))
+
+    def _node_constraints(self, i: int, zbar_min: float) -> None:
+        """Node i's LMI (26), Y, g ≻ 0, Σ τ < 1 (16), and per edge τ, U, G⁻¹ − U ≻ 0 [+ Z̄ᵢⱼ ≻ z₀I]."""
+        cp, prob = self.cp, self.prob
+        n, m, A, B = prob.n, prob.B.shape[1], prob.A, prob.B
+        tsum = self._tau_sum(i)
+        CEC = prob.C[i].T @ np.linalg.inv(prob.E(i)) @ prob.C[i]
+        L11 = A.T @ self.Y[i] + self.Y[i] @ A + (self.g[i] + tsum) * np.eye(n) - CEC - self._wuw(i)
+        L12 = self.Y[i] @ B
+        L22 = (tsum - 1.0) * np.eye(m)
+        self._strict("lmi26", -cp.bmat([[L11, L12], [L12.T, L22]]))            # (26)
+        self._strict("Y", self.Y[i])
+        self._strict("g", self.g[i])
+        if prob.nbrs[i]:
+            self._strict("sum_tau", 1.0 - tsum)                                  # (16)
+        for j in prob.nbrs[i]:
+            e = (i, j)
+            G_inv = np.linalg.inv(prob.G(i, j))
+            self._strict("tau", self.tau[e])
+            self._strict("U", self.U[e])
+            self._strict("Ginv_minus_U", G_inv - self.U[e])
+            if zbar_min > 0:                                                     # Z̄ᵢⱼ ≻ z₀I
+                p = G_inv.shape[0]
+                self._strict("zbar_lmi", cp.bmat([[G_inv - self.U[e], G_inv],
+                                                  [G_inv, G_inv + (self.tau[e] / zbar_min) * np.eye(p)]]))
+
+    def _theta_diagonal(self, i: int) -> Any:
+        """Θ̄'s diagonal block of node i (27)."""
+        prob, n, s, nb = self.prob, self.prob.n, self._s, self.prob.nbrs
+        th0 = self._wuw(i) + (self.g[i] + self._tau_sum(i)) * np.eye(n) - s * prob.P[i * n:(i + 1) * n, i * n:(i + 1) * n]
+        rows = [[th0] + [prob.W[(i, j)].T @ self.U[(i, j)] for j in nb[i]]]
+        for a, j in enumerate(nb[i]):
+            r = [(prob.W[(i, j)].T @ self.U[(i, j)]).T]
+            for b, k in enumerate(nb[i]):
+                pa, pb = prob.W[(i, j)].shape[0], prob.W[(i, k)].shape[0]
+                r.append(np.linalg.inv(prob.G(i, j)) if a == b else np.zeros((pa, pb)))
+            rows.append(r)
+        return self.cp.bmat(rows)
+
+    def _theta_off_diagonal(self, i: int, j: int, sizes: list[int]) -> Any:
+        """Θ̄'s block (i, j), i < j (27): the coupling −WᵀUW of the edges between i and j, and −s·Pᵢⱼ."""
+        prob, n, nb = self.prob, self.prob.n, self.prob.nbrs
+        Psi: Any = np.zeros((n, n))
+        if j in nb[i]:
+            Psi = Psi - prob.W[(i, j)].T @ self.U[(i, j)] @ prob.W[(i, j)]
+        if i in nb[j]:
+            Psi = Psi - prob.W[(j, i)].T @ self.U[(j, i)] @ prob.W[(j, i)]
+        top = Psi - self._s * prob.P[i * n:(i + 1) * n, j * n:(j + 1) * n]
+        Mi, Mj = sizes[i] - n, sizes[j] - n
+        if isinstance(top, np.ndarray) and not np.any(top):
+            return np.zeros((sizes[i], sizes[j]))
+        return self.cp.bmat([[top, np.zeros((n, Mj))], [np.zeros((Mi, n)), np.zeros((Mi, Mj))]])
+
+    def _theta(self) -> Any:
+        """Θ̄ of (27), block by block."""
+        prob, N = self.prob, self.prob.N
+        sizes = [prob.n + sum(prob.W[(i, j)].shape[0] for j in prob.nbrs[i]) for i in range(N)]
         blocks: list[list[Any]] = [[None] * N for _ in range(N)]
-        P = prob.P
         for i in range(N):
-            taus = [self.tau[(i, j)] for j in nb[i]]
-            tsum = sum(taus) if taus else 0.0
-            WUW = sum((prob.W[(i, j)].T @ self.U[(i, j)] @ prob.W[(i, j)] for j in nb[i]), np.zeros((n, n)))
-            th0 = WUW + (self.g[i] + tsum) * I_n - s * P[i * n:(i + 1) * n, i * n:(i + 1) * n]
-            rows = [[th0] + [prob.W[(i, j)].T @ self.U[(i, j)] for j in nb[i]]]
-            for a, j in enumerate(nb[i]):
-                r = [(prob.W[(i, j)].T @ self.U[(i, j)]).T]
-                for b, k in enumerate(nb[i]):
-                    pa, pb = prob.W[(i, j)].shape[0], prob.W[(i, k)].shape[0]
-                    r.append(np.linalg.inv(prob.G(i, j)) if a == b else np.zeros((pa, pb)))
-                rows.append(r)
-            blocks[i][i] = cp.bmat(rows)
+            blocks[i][i] = self._theta_diagonal(i)
         for i in range(N):
             for j in range(i + 1, N):
-                Psi: Any = np.zeros((n, n))
-                if j in nb[i]:
-                    Psi = Psi - prob.W[(i, j)].T @ self.U[(i, j)] @ prob.W[(i, j)]
-                if i in nb[j]:
-                    Psi = Psi - prob.W[(j, i)].T @ self.U[(j, i)] @ prob.W[(j, i)]
-                top = Psi - s * P[i * n:(i + 1) * n, j * n:(j + 1) * n]
-                Mi, Mj = sizes[i] - n, sizes[j] - n
-                if isinstance(top, np.ndarray) and not np.any(top):
-                    blk: Any = np.zeros((sizes[i], sizes[j]))
-                else:
-                    blk = cp.bmat([[top, np.zeros((n, Mj))], [np.zeros((Mi, n)), np.zeros((Mi, Mj))]])
-                blocks[i][j] = blk
-                blocks[j][i] = blk.T
-        strict("theta", cp.bmat(blocks))
-        if self.s is not None:
-            cons.append(self.s >= 0)
-        self.constraints = cons
+                blocks[i][j] = self._theta_off_diagonal(i, j, sizes)
+                blocks[j][i] = blocks[i][j].T
+        return self.cp.bmat(blocks)
 
     def solve(self, objective: Any, solver: str, stage: str,
               solver_opts: Mapping[str, Any] | None) -> tuple[Any, float]:

@@ -140,7 +140,7 @@ class CentralizedMinimax:
         return self._x
 
     @property
-    def P(self) -> np.ndarray:  # noqa: N802 - paper notation
+    def P(self) -> np.ndarray:
         return self._P
 
     @property

@@ -86,7 +86,7 @@ class EstimatorSpec:
     design: Callable[[Any, Any, GraphFacts], dict[str, Any]] | None = None
     summary: Callable[[Mapping[str, Any], RunTrace | None], dict[str, Any]] | None = None
     report_design: Callable[[dict[str, Any]], tuple[dict[str, Any], str]] | None = None
-    per_sensor_C: bool = False   # noqa: N815 - the papers' C
+    per_sensor_C: bool = False
     default: bool = False        #: the estimator of a scenario whose [estimator] gives no name (one spec)
     doc: str = field(default="", compare=False)
 

@@ -68,9 +68,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .son_solvers import (IPM_STATUS, CvxpyReference, HuberProblem, OsqpSolver, SolveOut, _fused_split_ipm,
-                          _motion_w, _order, bandwidth, build_split, delta_from_lambda, lambda_from_delta,
-                          solve_ipm, solve_ls)
+from .son_banded import bandwidth
+from .son_fused import fused_split_ipm
+from .son_ipm import IPM_STATUS, solve_ipm
+from .son_layout import ROW_GPS, ROW_PRIOR, ROW_REL, build_split, motion_weights, time_order
+from .son_problem import HuberProblem, SolveOut, delta_from_lambda, lambda_from_delta
+from .son_reference import CvxpyReference, OsqpSolver, solve_ls
 
 __all__ = ["RelativeMeasurement", "Result", "SumOfNormsEstimator", "MeasurementWindow", "delta_from_lambda",
            "lambda_from_delta", "whitener", "motion_whitener"]
@@ -159,20 +162,17 @@ def whitener(C: np.ndarray, mode: str = "chol") -> np.ndarray:
 
 
 def motion_whitener(dt: float, q: float, dt_floor: float = 0.02, mode: str = "chol") -> np.ndarray:
-    return _motion_w(float(dt), float(q), float(dt_floor), 0 if mode == "chol" else 1)
+    return motion_weights(float(dt), float(q), float(dt_floor), 0 if mode == "chol" else 1)
 
 
 # ============================================================================= graph builders
-
-# row types (rowtype array)
-ROW_MOTION_P, ROW_MOTION_V, ROW_GPS, ROW_REL, ROW_PRIOR = 0, 1, 2, 3, 4
 
 
 def build_joint(t, seq, kind, z, gps, Wr, Wg, count, q, dt_floor, mode, v_prior):
     """One joint problem (some covariance not diagonal). ``Wr``/``Wg`` (cap, 2, 2) whitening matrices.
     Node k has variables [u_x, u_y (kind 1 only), p_x, p_y, v_x, v_y]. Same returns as
     :func:`build_split`, with hv/zz of shape (1, ·) and uix/pix/vix of shape (count, 2)."""
-    order = _order(t, seq, count)
+    order = time_order(t, seq, count)
     uix = np.full((count, 2), -1, np.int64)
     pix = np.empty((count, 2), np.int64)
     vix = np.empty((count, 2), np.int64)
@@ -199,7 +199,7 @@ def build_joint(t, seq, kind, z, gps, Wr, Wg, count, q, dt_floor, mode, v_prior)
         s = order[k]
         if k > 0:
             dt = t[s] - t[order[k - 1]]
-            W = _motion_w(dt, q, dt_floor, mode)
+            W = motion_weights(dt, q, dt_floor, mode)
             for ax in range(2):
                 for row in range(2):
                     a0, a1 = W[row, 0], W[row, 1]
@@ -324,7 +324,7 @@ class MeasurementWindow:
 
     def measurements(self) -> list[RelativeMeasurement]:
         """The window's measurements in time order."""
-        order = _order(self.t, self.seq, self.count)
+        order = time_order(self.t, self.seq, self.count)
         return [self.meas[s] for s in order]
 
     @property
@@ -347,7 +347,7 @@ class Result:
     ell_rows:   (A, m) ℓ̄ on every row (motion, GPS, relative).
     outliers:   (k,) bool — measurement judged an outlier: ‖ℓ̄ of its relative rows‖ > ``flag_sigma``.
     objective:  Σ huber_δ(r) at x (Huber form; objective (10) = objective / (λ²c²)).
-    kkt:        residuals (stationarity, stationarity_rel, gap, …; see son_solvers).
+    kkt:        residuals (stationarity, stationarity_rel, gap, …; see son_problem).
     newest, midwindow: (4,) target state at the newest node / the middle node; t_newest, t_mid.
     """
 
@@ -491,7 +491,7 @@ class SumOfNormsEstimator:
     def _solve_fused(self, delta: float) -> Result:
         w = self.window
         o = self.solver_options
-        order, times, X, target, uav, ellm, ell, sm = _fused_split_ipm(
+        order, times, X, target, uav, ellm, ell, sm = fused_split_ipm(
             w.t, w.seq, w.kind, w.z, w.gps, w.wr, w.wg, w.count, self.q, self.dt_floor, self._mode, self.v_prior,
             delta, o.get("tol", 1e-9), o.get("maxit", 60), o.get("polish", True), o.get("polish_gap", 0.3))
         k = order.shape[0]

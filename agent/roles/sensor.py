@@ -73,8 +73,8 @@ class SensorRole(Role):
     # ------------------------------------------------------------------ the world: ticks, truth, membership
     def _on_tick(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Tick)
-        if msg.positions.shape[1] != self.q.size:
-            self.counters["rejected_ticks"] += 1  # not our world: wrong dimension
+        if msg.positions.shape[1] != self.q.size or msg.k >= self.ticks:
+            self.counters["rejected_ticks"] += 1  # not our world: wrong dimension, or a tick beyond the run
             return
         if self.rejoin and not self._joining and msg.k > self.k and msg.n > self.i:
             # a restarted process joining a running flock: take up the world's clock and our last
@@ -262,11 +262,7 @@ class SensorRole(Role):
         """Tick ``self.k`` without information (its tick or truth lost, or the world marks us dead): the
         estimator's rounds with b = 0 and no neighbours — its prediction only; nothing published, the
         sensor stands still."""
-        self.est.start(TickContext(k=self.k, t=self.k * self.T, n=n, b=0.0, T=self.T),
-                       np.zeros(self.sensor.C.shape[0]))
-        for r in range(self.est.rounds):
-            self.est.absorb(r, {})
-        self.est.finish()
+        self.est.predict_only(TickContext(k=self.k, t=self.k * self.T, n=n, b=0.0, T=self.T), self.sensor.C.shape[0])
         self._next_tick()
 
     def _next_tick(self) -> None:

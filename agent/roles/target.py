@@ -9,6 +9,8 @@ position/velocity for tick k+1), which the world needs for range-based visibilit
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 
 from ..bus import Bus
@@ -32,6 +34,7 @@ class TargetRole(Role):
         self._last_xhat: np.ndarray | None = None
         self._waiting = False
         self._dead: set[int] = set()
+        self.counters: Counter = Counter()
         self._evade: dict[int, float] = {}  # active "evade" faults: id -> acceleration
         self.T = T
 
@@ -57,6 +60,9 @@ class TargetRole(Role):
 
     def _on_tick(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Tick)
+        if msg.k >= self.ticks:
+            self.counters["rejected_ticks"] += 1   # a tick beyond the run (hostile or not our world)
+            return
         if msg.k > self.k:
             # ticks we never got (lost while disconnected): the target does not wait for anyone
             if self._waiting:
