@@ -26,6 +26,19 @@ from .son_problem import HuberProblem, SolveOut, evaluate_solution, lambda_from_
 __all__ = ["CvxpyReference", "OsqpSolver", "solve_ls"]
 
 
+def _lru_entry(cache: OrderedDict, size: int, key, setup) -> tuple[dict, bool]:
+    """The solver set-up cached under ``key`` (made by ``setup()`` when absent, the least recently used one
+    evicted beyond ``size``), and whether it was made now."""
+    ent = cache.get(key)
+    if ent is not None:
+        cache.move_to_end(key)
+        return ent, False
+    ent = cache[key] = setup()
+    if len(cache) > size:
+        cache.popitem(last=False)
+    return ent, True
+
+
 def solve_ls(prob: HuberProblem) -> SolveOut:
     """Least squares on the same rows (δ = ∞): the batched-least-squares baseline."""
     X, bad = ls_solve_all(prob.rp, prob.ci, prob.hv, prob.z, prob.n, prob.bw, prob.chain_arg())
@@ -117,15 +130,8 @@ class OsqpSolver:
             q[a * nv + n + m: a * nv + n + 3 * m] = prob.delta
 
     def solve(self, prob: HuberProblem) -> SolveOut:
-        key = prob.shape_key()
-        ent = self._cache.get(key)
-        if ent is None:
-            ent = self._setup(prob)
-            self._cache[key] = ent
-            if len(self._cache) > self.cache_size:
-                self._cache.popitem(last=False)
-        else:
-            self._cache.move_to_end(key)
+        ent, new = _lru_entry(self._cache, self.cache_size, prob.shape_key(), lambda: self._setup(prob))
+        if not new:
             vals = np.concatenate([prob.hv.ravel(), ent["const"]])
             neq = prob.axes * prob.m
             ent["l"][:neq] = prob.z.ravel()
@@ -195,15 +201,8 @@ class CvxpyReference:
         return {"problem": problem, "x": x, "ell": ell, "hv": hv, "z": z, "lam": lam}
 
     def solve(self, prob: HuberProblem) -> SolveOut:
-        key = prob.shape_key() + (float(prob.delta),)
-        ent = self._cache.get(key)
-        if ent is None:
-            ent = self._setup(prob)
-            self._cache[key] = ent
-            if len(self._cache) > self.cache_size:
-                self._cache.popitem(last=False)
-        else:
-            self._cache.move_to_end(key)
+        ent, _ = _lru_entry(self._cache, self.cache_size, prob.shape_key() + (float(prob.delta),),
+                            lambda: self._setup(prob))
         lam = ent["lam"]
         ent["hv"].value = prob.hv.ravel()
         ent["z"].value = prob.z.ravel()
