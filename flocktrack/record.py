@@ -172,6 +172,10 @@ def metrics_from_recording(path: str | Path, out_dir: str | Path | None = None, 
 
 # ============================================================================ the recorder role
 
+#: Members that watch or steer a run, not roles that publish its results.
+_NOT_ROLES = frozenset({"recorder", "launcher", "dashboard"})
+
+
 def main(argv: list[str] | None = None) -> int:
     from agent.bus import ZenohBus
     from agent.runner import StopFlag, profiled
@@ -181,7 +185,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447")
     ap.add_argument("--out", required=True)
     ap.add_argument("--meta", default=None, help="JSON file of metadata (scenario text, design)")
-    ap.add_argument("--linger", type=float, default=0.5, help="seconds to keep recording after world/end")
+    ap.add_argument("--linger", type=float, default=0.5,
+                    help="seconds to keep recording after world/end (at least; then until the roles have exited)")
+    ap.add_argument("--linger-max", type=float, default=20.0,
+                    help="seconds after world/end at which the recording stops even if a role is still up")
     ap.add_argument("--config", default=None)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -190,16 +197,31 @@ def main(argv: list[str] | None = None) -> int:
     rec = McapRecorder(args.out, meta)
     bus = ZenohBus(args.run, connect=args.connect, config_file=args.config)
     end_at: list[float] = []
+    roles_up: set[str] = set()
 
     def on_raw(key: str, data: bytes) -> None:
         rec.write_raw(key, data)
         if key == "world/end" and not end_at:
-            end_at.append(time.monotonic() + args.linger)
+            end_at.append(time.monotonic())
+
+    def on_member(name: str, alive: bool) -> None:
+        if name.split("/")[0] in _NOT_ROLES:
+            return
+        (roles_up.add if alive else roles_up.discard)(name)
+
+    def over() -> bool:
+        """After world/end: the roles still finishing (e.g. the fusion solving its last measurements)
+        publish until they exit, so the file closes once every role's token is gone."""
+        if not end_at:
+            return False
+        waited = time.monotonic() - end_at[0]
+        return waited > args.linger_max or (waited > args.linger and not roles_up)
 
     def loop() -> None:
         bus.subscribe_raw("**", on_raw)
+        bus.watch_members(on_member)
         bus.declare_token("recorder/0")
-        while not stop.set and not (end_at and time.monotonic() > end_at[0]):
+        while not stop.set and not over():
             bus.poll(0.05)
         bus.poll(0)  # whatever is already queued
 
