@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from .roles.common import Role
 
 log = logging.getLogger(__name__)
+_STARTED = time.monotonic()  # (imported at process start, before the heavy imports of the roles)
 
 
 def parse_member(name: str) -> tuple[str, int] | None:
@@ -74,6 +75,7 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
     role.attach(bus)
     bus.watch_members(on_member)
     bus.declare_token(name)
+    log.info("%s: member of the run (%.2f s after the process started)", name, time.monotonic() - _STARTED)
     expect = set(expect)
     t_start = time.monotonic()
     while expect - members:

@@ -15,6 +15,7 @@ payloads and the measurement is emulated by :class:`agent.link_emulation.LinkEmu
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import Counter
 
@@ -27,6 +28,8 @@ from ..models import LinearSensor, integrate_double_integrator
 from ..wire import (Control, Estimate, Meas, Message, State, Tick, Truth, WireError, Xchg, command, fault_event,
                     peek_round)
 from .common import Role
+
+log = logging.getLogger(__name__)
 
 
 class SensorRole(Role):
@@ -48,6 +51,7 @@ class SensorRole(Role):
         self._nbrs: list[int] = []
         self._dead: set[int] = set()
         self.rejoin, self._joining = bool(rejoin), False
+        self._sat_out_last = -2   # the last tick sat out (a log line when a stretch begins)
         self._peer_est: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}   # a rejoining sensor's restart
         self.counters: Counter = Counter()
         self.link = LinkEmulator(self.i, self.seed, self._accept_xchg, time.monotonic, noise_factor(sensor),
@@ -80,6 +84,7 @@ class SensorRole(Role):
             # a restarted process joining a running flock: take up the world's clock and our last
             # known position, and re-initialise the filter from the neighbours' estimates (_begin)
             self.k, self._joining = msg.k, True
+            log.info("agent/%d: rejoining the flock at tick %d", self.i, msg.k)
             self.q = np.array(msg.positions[self.i][: self.q.size], float)
             self.p = np.zeros_like(self.q)
             self._forget_past()
@@ -184,6 +189,9 @@ class SensorRole(Role):
         if not tick.alive[self.i]:
             # the world's membership is authoritative: a tick that marks us dead (cut off, not yet seen
             # back after a restart) is sat out — predicted only, nothing published
+            if self._sat_out_last != self.k - 1:
+                log.info("agent/%d: tick %d marks me dead: sitting out", self.i, self.k)
+            self._sat_out_last = self.k
             self._predict_blind(tick.n)
             self.counters["sat_out_ticks"] += 1
             return
@@ -197,6 +205,7 @@ class SensorRole(Role):
         self._nbrs = [j for j in links if tick.alive[j] and j not in self._dead]
         if self._joining:
             self._reinitialise()
+            log.info("agent/%d: back in the flock at tick %d", self.i, self.k)
         self._prior = self.est.x.copy()
         self.est.start(TickContext(k=tick.k, t=tick.t, n=tick.n, neighbours=tuple(self._nbrs), b=b, T=self.T,
                                    weights=tuple(tick.weights[self.i][links.index(j)] for j in self._nbrs),
