@@ -659,7 +659,7 @@ def test_the_view_frames_and_follows_the_flock(tmp_path):
 
 
 def test_readmes_main_job_as_a_user_runs_it_on_a_loaded_machine(tmp_path):
-    """The README's main job — ``flocktrack run scenarios/demo.toml --dashboard --out DIR`` (shortened to 150
+    """The README's main job — ``flocktrack run scenarios/demo.toml --dashboard --out DIR`` (shortened to 250
     ticks, the dashboard closed at the end) — typed as a user would, while a CPU hog runs beside it on this
     2-core machine: the page shows the flock in view (every sensor on the canvas, under no panel), every
     plot panel draws its lines, the terminal's status line counts up to the end, and the results are
@@ -673,7 +673,7 @@ def test_readmes_main_job_as_a_user_runs_it_on_a_loaded_machine(tmp_path):
 
     from flocktrack.launch import free_port
 
-    port, out, ticks = free_port(), tmp_path / "demo", 150
+    port, out, ticks = free_port(), tmp_path / "demo", 250
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     proc = subprocess.Popen([sys.executable, "-m", "flocktrack", "run", "scenarios/demo.toml", "--dashboard",
                              "--dashboard-port", str(port), "--no-linger", "--ticks", str(ticks), "--out", str(out)],
@@ -706,7 +706,7 @@ def test_readmes_main_job_as_a_user_runs_it_on_a_loaded_machine(tmp_path):
             proc.kill()
         proc.wait()
     reader.join(10)
-    counts = [int(m.group(1)) for ln in err for m in [re.match(r"tick (\d+)/150 · ", ln)] if m]
+    counts = [int(m.group(1)) for ln in err for m in [re.match(rf"tick (\d+)/{ticks} · ", ln)] if m]
     assert len(set(counts)) >= 4 and counts == sorted(counts) and counts[-1] == ticks, err[-20:]
     assert (out / "summary.json").is_file() and (out / "metrics.csv").is_file()
     assert f"results in {out}/" in proc.stdout.read()
