@@ -226,14 +226,29 @@ class ZenohBus:
         self.publish_raw(key, wire.encode(msg))
 
     def publish_raw(self, key: str, data: bytes) -> None:
+        self._publisher(key).put(data)
+        self.stats.sent += 1
+        self.stats.sent_by_key[key] += 1
+
+    def _publisher(self, key: str):
         pub = self._pubs.get(key)
         if pub is None:
             z = self._zenoh
             pub = self._pubs[key] = self.session.declare_publisher(
                 self.prefix + key, congestion_control=z.CongestionControl.BLOCK)
-        pub.put(data)
-        self.stats.sent += 1
-        self.stats.sent_by_key[key] += 1
+        return pub
+
+    def await_subscriber(self, key: str, timeout_s: float) -> bool:
+        """Wait until someone subscribes to what we would put on ``key`` (a put before the routes reach
+        us is dropped at the publisher); False after ``timeout_s`` without one."""
+        import time
+
+        pub, end = self._publisher(key), time.monotonic() + timeout_s
+        while not pub.matching_status.matching:
+            if time.monotonic() > end:
+                return False
+            time.sleep(0.02)
+        return True
 
     def subscribe(self, pattern: str, handler: Handler, prefilter: Prefilter | None = None) -> None:
         n = len(self.prefix)

@@ -532,6 +532,11 @@ class HealFault(Command):
 
 
 @dataclass(frozen=True)
+class Member(Command):
+    agent: int = 0               #: kill / restart: the sensor process (the launcher's verbs)
+
+
+@dataclass(frozen=True)
 class OutlierBurst(Command):
     agent: int = -1              #: the sensor (−1: every sensor)
     ticks: int = 1               #: impulsive outliers on its next ``ticks`` measurements ...
@@ -544,7 +549,7 @@ def _inject(verb: str, a: dict[str, Any]) -> Inject:
                               or not 1 <= ticks <= MAX_INJECT_TICKS):
         raise WireError("bad_field",
                         f"inject.ticks: the fault's duration must be a number of ticks ≥ 1, got {ticks!r}")
-    event = {k: v for k, v in a.items() if k not in ("ticks", "id", "start", "heal")}
+    event = {k: v for k, v in a.items() if k not in ("ticks", "id", "start", "heal", "req")}
     for k in ("delay_ticks", "jitter_ticks"):   # integers in a Control may come as floats
         if isinstance(event.get(k), float) and event[k].is_integer():
             event[k] = int(event[k])
@@ -552,12 +557,15 @@ def _inject(verb: str, a: dict[str, Any]) -> Inject:
 
 
 def command(verb: str, args: dict[str, Any], n: int = MAX_LIST_LEN) -> Command:
-    """The typed command of ``control/<verb>`` with ``args``, for a flock of ``n`` sensors. Raises
-    :class:`WireError`: ``unknown_verb`` (kill and restart are the launcher's, it reads them itself), or
-    ``bad_field`` with a detail that says which argument is wrong and why."""
+    """The typed command of ``control/<verb>`` with ``args``, for a flock of ``n`` sensors — what the world,
+    the launcher (kill, restart), the sensors (outlier_burst) and ``flocktrack fault`` (before it sends)
+    check. Raises :class:`WireError`: ``unknown_verb``, or ``bad_field`` with a detail that says which
+    argument is wrong and why."""
     a = args
     if verb in ("pause", "resume", "heal"):
         return Command(verb)
+    if verb in ("kill", "restart"):
+        return Member(verb, _whole(a.get("agent"), "agent", 0, n - 1))
     if verb == "step":
         return Step(verb, max(1, _whole(a.get("n") or 1, "n", -2**53, 2**53)))
     if verb == "speed":

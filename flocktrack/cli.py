@@ -5,7 +5,9 @@
                             [--estimator NAME] [--rounds R] [--set section.key=value ...]
                             [--restart never|on-failure] [-v] [--out DIR]
     flocktrack design SCENARIO --out FILE
-    flocktrack fault VERB [name=value ...] --run RUN --connect ENDPOINT
+    flocktrack fault VERB [name=value ...] [--run RUN --connect ENDPOINT] [--timeout S]
+    flocktrack ps [--connect ENDPOINT] [--json]
+    flocktrack logs [RUN] [MEMBER] [-f]
     flocktrack compose SCENARIO [--out DIR]
     flocktrack keys SCENARIO --out DIR            (then: flocktrack run … --secure --keys DIR)
     flocktrack sweep SCENARIO --grid KEY=V1,V2 ... --seeds S --out DIR
@@ -96,42 +98,73 @@ def _g(v) -> str:
 
 
 def cmd_fault(args) -> int:
-    """Publish one control/fault command on a running flock (what the dashboard's buttons do)."""
+    """Send one control verb to a running flock (what the dashboard's buttons do), checked first, and
+    report the run's answer: exit 0 applied, 1 refused, 2 no answer (flocktrack/fault_client.py)."""
     from agent.bus import ZenohBus
-    from agent.suggest import did_you_mean
-    from agent.wire import CONTROL_VERBS, Control, WireError, control_args, decode, encode
+    from agent.wire import WireError, control_args
 
-    if args.verb not in CONTROL_VERBS:
-        print(f"error: unknown verb {args.verb!r}; {did_you_mean(args.verb, CONTROL_VERBS, quote=chr(39))}"
-              f"the verbs are: {', '.join(CONTROL_VERBS)}", file=sys.stderr)
-        return 2
+    from . import fault_client as fc
+    from .runs import find_local, local_runs
+
+    local = find_local(args.run) if args.connect is None else None
     try:
         kv = control_args(args.args)
-    except ValueError as exc:
-        print(f"error: argument {exc}", file=sys.stderr)
-        return 2
-    msg = Control(verb=args.verb, args=kv)
-    try:
-        decode(f"control/{args.verb}", encode(msg))  # the same validation every receiver applies
-    except WireError as exc:
+        fc.check(args.verb, kv, local.n_sensors if local is not None else None)
+    except fc.UnknownVerbError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return fc.NO_ANSWER
+    except (ValueError, WireError) as exc:
+        detail = exc.detail if isinstance(exc, WireError) else str(exc)
+        print(f"refused (nothing sent): {detail}", file=sys.stderr)
+        return fc.REFUSED
+    run, connect, config = args.run, args.connect, args.config
+    if run is None or connect is None:
+        if local is None:
+            runs = local_runs()
+            print("error: " + ("no run of this machine's launchers is going; give --run and --connect" if not runs
+                               else f"{len(runs)} runs are going, say which with --run: "
+                                    + ", ".join(e.run for e in runs) if run is None
+                               else f"no local run {run!r}; give --connect for a run elsewhere"), file=sys.stderr)
+            return fc.NO_ANSWER
+        run, connect, config = local.run, connect or local.endpoint, config or local.config
     try:
-        bus = ZenohBus(args.run, connect=args.connect)
+        bus = ZenohBus(run, connect=connect, config_file=config)
     except Exception as exc:  # zenoh.ZError: nobody listening there
-        print(f"error: cannot reach a router at {args.connect} ({exc}); is the run going? "
-              f"`flocktrack run` prints its endpoint", file=sys.stderr)
-        return 1
+        print(f"error: cannot reach a router at {connect} ({exc}); is the run going? `flocktrack ps` lists them",
+              file=sys.stderr)
+        return fc.NO_ANSWER
     try:
-        import time as _t
-
-        _t.sleep(0.3)  # let the subscription routes reach us
-        bus.publish(f"control/{args.verb}", msg)
-        _t.sleep(0.2)
+        ans = fc.send(bus, args.verb, kv, timeout_s=args.timeout)
     finally:
         bus.close()
-    print(f"sent control/{args.verb} {kv} to ft/{args.run}/ via {args.connect}")
+    print(f"{run}: {ans.text}", file=sys.stdout if ans.code == fc.APPLIED else sys.stderr)
+    return ans.code
+
+
+def cmd_ps(args) -> int:
+    """The runs reachable on a router (default: every run of this machine's launchers)."""
+    from .ps import as_json, discover, table
+
+    runs, failed = discover(args.connect, args.config)
+    for f in failed:
+        print(f"warning: no router at {f}", file=sys.stderr)
+    if args.json:
+        print(as_json(runs))
+    elif runs:
+        print(table(runs))
+    else:
+        print("no runs" + (f" on {args.connect}" if args.connect else " (no local launcher is running one)"))
     return 0
+
+
+def cmd_logs(args) -> int:
+    from .logs import LogsError, run_dir, show
+
+    try:
+        return show(run_dir(args.run), args.member, follow=args.follow)
+    except LogsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
 
 def cmd_design(args) -> int:
@@ -213,14 +246,27 @@ def main(argv: list[str] | None = None) -> int:
     dg.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
     dg.add_argument("--out", required=True)
     dg.set_defaults(fn=cmd_design)
-    fl = sub.add_parser("fault", help="send a control/fault command to a running flock")
+    fl = sub.add_parser("fault", help="send a control verb to a running flock and report its answer "
+                                      "(exit 0 applied, 1 refused, 2 no answer)")
     from agent.wire import CONTROL_VERBS
 
     fl.add_argument("verb", help=", ".join(CONTROL_VERBS))
     fl.add_argument("args", nargs="*", help="name=value (TOML values), e.g. agent=3 or groups=[0,0,1,1]")
-    fl.add_argument("--run", required=True, help="the run name printed by `flocktrack run`")
-    fl.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    fl.add_argument("--run", help="the run name (default: the only run of this machine's launchers)")
+    fl.add_argument("--connect", help="its router (default: the local run's)")
+    fl.add_argument("--config", help="Zenoh client config (a secure run's: default the local run's)")
+    fl.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the answer (default 5)")
     fl.set_defaults(fn=cmd_fault)
+    ps = sub.add_parser("ps", help="the runs reachable on a router: name, tick, mode, members, endpoint")
+    ps.add_argument("--connect", help="a router (default: every local launcher's)")
+    ps.add_argument("--config", help="Zenoh client config for --connect")
+    ps.add_argument("--json", action="store_true", help="as JSON")
+    ps.set_defaults(fn=cmd_ps)
+    lg = sub.add_parser("logs", help="the per-process logs of a run; -f follows them")
+    lg.add_argument("run", nargs="?", help="run directory or local run name (default: the only local run)")
+    lg.add_argument("member", nargs="?", help="one process, e.g. agent/3, world, recorder")
+    lg.add_argument("-f", "--follow", action="store_true", help="follow (until Ctrl-C or the run's end)")
+    lg.set_defaults(fn=cmd_logs)
     mt = sub.add_parser("metrics", help="recompute summary.json from a recording")
     mt.add_argument("recording")
     mt.add_argument("--out", required=True)

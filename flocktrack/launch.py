@@ -262,27 +262,64 @@ class Launcher:
         self.ctl_bus.subscribe("control/restart", self._on_control)
         self.ctl_bus.subscribe("world/event", self._on_world_event)
         self.ctl_bus.declare_token("launcher/0")
+        self._register()
         for c in self.plan():
             self.children[c.name] = c
             self._spawn(c)
 
+    def _register(self) -> None:
+        """This run in the machine's list of runs (flocktrack/runs.py: ``flocktrack ps``, ``fault``, ``logs``)."""
+        from .runs import LocalRun, register
+
+        config = self.keys.client("dashboard") if self.keys is not None else None
+        try:
+            register(LocalRun(self.run, self.endpoint, self.mode, self.n, str(self.run_dir.resolve()), os.getpid(),
+                              time.time(), str(config) if config else None))
+            self._registered = True
+        except OSError as exc:
+            print(f"warning: run not listed for `flocktrack ps` ({exc})", file=sys.stderr)
+
     def _on_control(self, key: str, msg) -> None:
         """control/kill {agent} SIGKILLs a sensor and holds it down; control/restart {agent} brings it
-        back (rejoining the flock)."""
-        i = msg.args.get("agent")
-        name = f"agent/{int(i)}" if isinstance(i, (int, float)) and not isinstance(i, bool) and i == int(i) else None
-        c = self.children.get(name) if name else None
+        back (rejoining the flock). Each is answered on ``launcher/event`` (verb = the command's, args:
+        agent, applied, reason, and the sender's ``req``) — what ``flocktrack fault`` waits for."""
+        from agent.wire import WireError, command
+
+        try:
+            cmd = command(msg.verb, msg.args, self.n)
+        except WireError as exc:
+            return self._answer(msg, None, f"{exc.detail or exc.reason}")
+        name = f"agent/{cmd.agent}"
+        c = self.children.get(name)
         if c is None:
-            return
+            return  # (another host's launcher runs it)
         if msg.verb == "kill":
+            if not self.alive(name):
+                return self._answer(msg, cmd.agent, f"{name} is not running")
             c.hold = True
             c.restart_at = None
             self.kill(name, signal.SIGKILL)
-        elif msg.verb == "restart" and not self.alive(name) and not self.stopping.is_set():
+            self._answer(msg, cmd.agent, None)
+        elif self.stopping.is_set():
+            self._answer(msg, cmd.agent, "the run is stopping")
+        elif self.alive(name):
+            self._answer(msg, cmd.agent, f"{name} is running (kill it first)")
+        else:
             c.hold = False
             c.restart_at = None
             self._event("restart", name, attempt=c.restarts, requested=True)
             self._spawn(c, rejoin=True)
+            self._answer(msg, cmd.agent, None)
+
+    def _answer(self, msg, agent: int | None, refusal: str | None) -> None:
+        """A control's outcome on ``launcher/event``: applied (``refusal`` None) or refused, and why."""
+        from agent.wire import Control
+
+        args = {"agent": agent, "applied": refusal is None, "reason": (refusal or "")[:300]}
+        if isinstance(msg.args.get("req"), str):
+            args["req"] = msg.args["req"][:64]
+        if self.ctl_bus is not None:
+            self.ctl_bus.publish("launcher/event", Control(k=0, verb=msg.verb, args=args))  # (the launcher keeps no tick)
 
     def _on_world_event(self, key: str, msg) -> None:
         """Process-level faults of the plan (topology/faults.py): crash → SIGKILL (restart at heal),
@@ -433,6 +470,11 @@ class Launcher:
                 c.proc.kill()
                 c.proc.wait()
                 self._event("killed", c.name)
+        if getattr(self, "_registered", False):
+            from .runs import unregister
+
+            unregister(self.run)
+            self._registered = False
         if self.ctl_bus is not None:
             self.ctl_bus.close()
             self.ctl_bus = None

@@ -183,7 +183,7 @@ def _stop_on_signals(launcher: Launcher) -> dict:
 def _announce(sc: Scenario, run: str, launcher: Launcher, keys, out: Path):
     """Say where the run is and how to reach it; the live status line (or None)."""
     print(f"run {run} on {launcher.endpoint} ({sc.sensors.n} sensors, {sc.run.mode}); logs in {out}/logs/; "
-          f"faults: flocktrack fault VERB --run {run} --connect {launcher.endpoint}", file=sys.stderr)
+          f"faults: flocktrack fault VERB (--run {run} --connect {launcher.endpoint} when several runs go)", file=sys.stderr)
     if keys is not None:
         print(f"secure: TLS + mTLS + user/password + ACL with the keys in {keys.dir} (a client needs "
               f"its identity's config, e.g. --config {keys.client('dashboard')})", file=sys.stderr)

@@ -182,9 +182,16 @@ def test_bad_control_arguments_are_refused_with_the_argument_named(verb, args, w
 
 
 def test_unknown_verbs_are_refused():
-    for verb in ("kill", "restart", "no_such_verb"):
+    for verb in ("no_such_verb", "fault", "rejected"):
         with pytest.raises(wire.WireError, match="unknown_verb"):
             wire.command(verb, {})
+
+
+def test_the_launchers_verbs_name_one_sensor():
+    assert wire.command("kill", {"agent": 3.0}, n=4) == wire.Member("kill", 3)
+    for args in ({}, {"agent": 4}, {"agent": 1.5}, {"agent": "x"}):
+        with pytest.raises(wire.WireError, match="agent must be an integer in \\[0, 3\\]"):
+            wire.command("restart", args, n=4)
 
 
 def test_peek_round_reads_sender_tick_and_round_without_decoding():

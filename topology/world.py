@@ -122,8 +122,10 @@ class WorldRole(Role):
         if not self.apply_control(msg.verb, msg.args):
             if msg.verb in WORLD_VERBS:   # say why on the timeline (the dashboard shows it); others' verbs: silence
                 self.stats["rejected_controls"] = self.stats.get("rejected_controls", 0) + 1
-                self.publish("world/event", Control(k=self._next_k(), verb="rejected",
-                                                    args={"verb": msg.verb, "reason": self.last_rejection[:300]}))
+                why = {"verb": msg.verb, "reason": self.last_rejection[:300]}
+                if isinstance(msg.args.get("req"), str):   # flocktrack fault's request id: its answer
+                    why["req"] = msg.args["req"][:64]
+                self.publish("world/event", Control(k=self._next_k(), verb="rejected", args=why))
         else:
             self.stats["controls"] += 1
             args = dict(msg.args)

@@ -1,0 +1,106 @@
+"""``flocktrack ps``: the runs reachable on a router, from their members' liveliness tokens.
+
+A run is the set of tokens ``ft/<run>/alive/<member>`` (every role, the recorder, the launcher, a
+dashboard declare one); its tick is the newest ``ft/<run>/world/tick`` heard in a short listen. Without
+``--connect``, every run of this machine's launchers (flocktrack/runs.py) is asked on its own router;
+those files also give the mode and the run directory, which a router alone does not know.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+
+from .runs import LocalRun, local_runs
+
+
+@dataclass
+class RunSeen:
+    run: str
+    endpoint: str
+    members: set[str] = field(default_factory=set)
+    tick: int | None = None
+    mode: str = "?"
+    n_sensors: int | None = None
+    out: str = ""
+
+    @property
+    def sensors_alive(self) -> int:
+        return sum(m.startswith("agent/") for m in self.members)
+
+    def row(self) -> dict:
+        others = sorted(m for m in self.members if not m.startswith("agent/"))
+        return {"run": self.run, "tick": self.tick, "mode": self.mode,
+                "sensors": f"{self.sensors_alive}/{self.n_sensors if self.n_sensors is not None else '?'}",
+                "members": " ".join(others), "endpoint": self.endpoint, "out": self.out}
+
+
+def runs_on(endpoint: str, config_file: str | None = None, listen_s: float = 0.6) -> dict[str, RunSeen]:
+    """The runs whose members hold tokens on the router at ``endpoint``."""
+    import zenoh
+
+    from agent.bus import zenoh_config
+
+    session = zenoh.open(zenoh_config(endpoint, None, "client", config_file))
+    seen: dict[str, RunSeen] = {}
+    try:
+        for reply in session.liveliness().get("ft/*/alive/**", timeout=2.0):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).split("/", 3)   # ft / <run> / alive / <member>
+            if len(parts) == 4:
+                seen.setdefault(parts[1], RunSeen(parts[1], endpoint)).members.add(parts[3])
+        ticks: dict[str, int] = {}
+
+        def on_tick(sample) -> None:
+            run = str(sample.key_expr).split("/")[1]
+            try:
+                from agent.wire import decode
+
+                ticks[run] = max(ticks.get(run, -1), decode("world/tick", sample.payload.to_bytes()).k)
+            except Exception:  # a bad sample tells no tick
+                pass
+
+        sub = session.declare_subscriber("ft/*/world/tick", on_tick)
+        time.sleep(listen_s)
+        sub.undeclare()
+        for run, k in ticks.items():
+            if run in seen:
+                seen[run].tick = k
+    finally:
+        session.close()
+    return seen
+
+
+def discover(connect: str | None = None, config_file: str | None = None) -> tuple[list[RunSeen], list[str]]:
+    """The runs on ``connect`` (else on every local launcher's router), and the endpoints that failed."""
+    local = {e.run: e for e in local_runs()}
+    targets: list[tuple[str, str | None]] = ([(connect, config_file)] if connect else
+                                             sorted({(e.endpoint, e.config) for e in local.values()}))
+    found: dict[str, RunSeen] = {}
+    failed = []
+    for ep, cfg in targets:
+        try:
+            found.update(runs_on(ep, cfg))
+        except Exception as exc:  # zenoh.ZError: no router there (reported, not raised)
+            failed.append(f"{ep} ({exc})")
+    for run, r in found.items():
+        e: LocalRun | None = local.get(run)
+        if e is not None:
+            r.mode, r.n_sensors, r.out = e.mode, e.n_sensors, e.out
+    return sorted(found.values(), key=lambda r: r.run), failed
+
+
+def table(runs: list[RunSeen]) -> str:
+    """The rows as aligned columns (``docker compose ps`` style)."""
+    cols = ["run", "tick", "mode", "sensors", "members", "endpoint", "out"]
+    rows = [[("" if v is None else str(v)) for v in (r.row()[c] for c in cols)] for r in runs]
+    widths = [max([len(c)] + [len(row[i]) for row in rows]) for i, c in enumerate(cols)]
+    lines = ["  ".join(c.upper().ljust(w) for c, w in zip(cols, widths))]
+    lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in rows]
+    return "\n".join(x.rstrip() for x in lines)
+
+
+def as_json(runs: list[RunSeen]) -> str:
+    return json.dumps([r.row() | {"members": sorted(r.members)} for r in runs], indent=1)
