@@ -158,8 +158,9 @@ def test_structure_of_the_demo_deployment(committed):
             continue
         assert "--connect tcp/router:7447" in text and f"--run {run}" in text, name
 
-    # ports: only the dashboard publishes one; the router is reachable on the compose network
-    assert svcs["dashboard"]["ports"] == ["8080:8080"]
+    # ports: only the dashboard publishes one, on the host's loopback (its buttons kill processes); the
+    # router is reachable on the compose network
+    assert svcs["dashboard"]["ports"] == ["127.0.0.1:8080:8080"]
     assert [k for k, s in svcs.items() if "ports" in s] == ["dashboard"]
     assert svcs["router"]["expose"] == ["7447"]
 
@@ -328,11 +329,17 @@ def test_register_adds_the_compose_subcommand(tmp_path):
     assert args.fn(args) == 0
     doc = load((tmp_path / "docker-compose.yml").read_text())
     validate(doc)
-    assert doc["services"]["dashboard"]["ports"] == ["9090:8080"]
+    assert doc["services"]["dashboard"]["ports"] == ["127.0.0.1:9090:8080"]
     assert doc["services"]["sensor-0"]["restart"] == "no" and doc["services"]["sensor-0"]["image"] == "me/flock:1"
     # the header says how to regenerate it
     assert "`flocktrack compose scenarios/demo.toml --image me/flock:1 --dashboard-port 9090 --restart never`" \
         in (tmp_path / "docker-compose.yml").read_text()
+    # on every interface of the host only when asked
+    args = ap.parse_args(["compose", str(DEMO), "--out", str(tmp_path), "--dashboard-public"])
+    assert args.fn(args) == 0
+    text = (tmp_path / "docker-compose.yml").read_text()
+    assert load(text)["services"]["dashboard"]["ports"] == ["8080:8080"]
+    assert "`flocktrack compose scenarios/demo.toml --dashboard-public`" in text
 
 
 # ============================================================================ router and health processes
