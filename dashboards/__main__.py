@@ -38,6 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--host", default="127.0.0.1", help="interface to serve on (0.0.0.0 in containers)")
     ap.add_argument("--config", default=None, help="Zenoh json5 config for this process")
     ap.add_argument("--exit-on-end", action="store_true", help="live: exit one second after world/end")
+    ap.add_argument("--operator-token-file", help="live: file holding the run's operator token (default: "
+                                                  "$FLOCKTRACK_DASHBOARD_TOKEN, else a new token, its link logged)")
+    ap.add_argument("--viewer-only", action="store_true", help="live: no operator at all (a read-only page)")
     ap.add_argument("--play", action="store_true", help="replay: start playing at once")
     ap.add_argument("--png", help="replay: write a static PNG of the recording and exit (no server)")
     ap.add_argument("--tick", type=int, default=None, help="--png: the tick to draw (default: the last)")
@@ -89,7 +92,26 @@ def main(argv: list[str] | None = None) -> int:
 
     info = RunInfo.from_files(args.scenario, args.design)
     return run_live(args.run, args.connect, args.port, info, host=args.host, config_file=args.config,
-                    exit_on_end=args.exit_on_end, stop_event=stop)
+                    exit_on_end=args.exit_on_end, stop_event=stop, operator_token=_operator_token(args))
+
+
+def _operator_token(args) -> str | None:
+    """The run's operator token: from --operator-token-file, else $FLOCKTRACK_DASHBOARD_TOKEN, else a new one
+    (its link is logged once, as Jupyter prints its token); --viewer-only: none (nobody can steer)."""
+    from .operator import TOKEN_ENV, new_token, operator_url
+
+    if args.viewer_only:
+        return None
+    if args.operator_token_file:
+        with open(args.operator_token_file) as f:
+            return f.read().strip() or None
+    if os.environ.get(TOKEN_ENV):
+        return os.environ[TOKEN_ENV]
+    token = new_token()
+    shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
+    logging.getLogger("dashboards").info("operator link (steers the run; keep it private): %s",
+                                         operator_url(shown, args.port, token))
+    return token
 
 
 if __name__ == "__main__":

@@ -207,10 +207,14 @@ class DashboardUI:
     threads) by the fault and run-control buttons; None in replay."""
 
     def __init__(self, info: RunInfo, port: int = 8080, host: str = "127.0.0.1", *, live: bool = True,
-                 send_control=None, replay: ReplayModel | None = None, verbose: bool = False):
+                 send_control=None, replay: ReplayModel | None = None, verbose: bool = False,
+                 operator_token: str | None = None):
         import viser
 
+        from .operator import Operators
+
         self.info, self.live, self.replay = info, live, replay
+        self.operators = Operators(operator_token if live else None)
         self.send_control = send_control
         self.server = viser.ViserServer(host=host, port=port, label=f"flocktrack · {info.name}", verbose=verbose) \
             if "verbose" in viser.ViserServer.__init__.__code__.co_varnames \
@@ -234,7 +238,7 @@ class DashboardUI:
         self._build_scene()
         self._build_gui()
         self.server.on_client_connect(self._on_connect)
-        self.server.on_client_disconnect(lambda client: self._views.pop(client.client_id, None))
+        self.server.on_client_disconnect(self._on_disconnect)
 
     # ------------------------------------------------------------------ scene
     def _build_scene(self) -> None:
@@ -399,9 +403,27 @@ class DashboardUI:
     #: zoomed in on (1.6 left it a third of the canvas it should fill)
     ZOOM_SLACK = 1.3
 
+    def _on_disconnect(self, client) -> None:
+        self._views.pop(client.client_id, None)
+        self.operators.panels.pop(client.client_id, None)
+
+    def add_operator_panel(self, gui, client_id: int | None):
+        """The run and fault controls on ``gui`` for tab ``client_id`` (dashboards/operator.py)."""
+        from .operator import build_panel
+
+        panel = build_panel(gui, client_id, self, self._operator_orders)
+        self.operators.panels[client_id] = panel
+        return panel
+
     def _on_connect(self, client) -> None:
-        """A new tab: it gets the framing at once (at the next update), and its camera reports are watched
-        for the user's own moves."""
+        """A new tab: an operator's (the run's token in its websocket path) gets the controls on its own GUI;
+        every tab gets the framing at once (at the next update), and its camera reports are watched for the
+        user's own moves."""
+        from .operator import websocket_path
+
+        if self.live and self.operators.is_operator(websocket_path(self.server, client.client_id)):
+            self.add_operator_panel(client.gui, client.client_id)
+            log.info("tab %s: operator", client.client_id)
         view = ClientView()
         # the page reports its default pose first, then the server's initial camera (applied after its first
         # frames, possibly after our first command): both are ours, not the user's
@@ -612,36 +634,22 @@ class DashboardUI:
         self.controls_sent.append((verb, args))
         self.send_control(verb, args)
 
-    def inject_from_form(self) -> bool:
-        """The "Plan fault" form → control/inject (the world validates it and answers on world/event with
-        the fault's id, or "rejected" and the reason). Words that are not name=value are flagged in place."""
-        try:
-            args = wire.control_args(self.g_inj_params.value)
-        except ValueError as exc:
-            self.g_inj_params.value = f"{self.g_inj_params.value.split('  ←')[0]}  ← {exc}"
-            return False
-        args.update(kind=self.g_inj_kind.value, targets=self.g_inj_targets.value.strip())
-        if int(self.g_inj_ticks.value) > 0:
-            args["ticks"] = int(self.g_inj_ticks.value)
-        self.control("inject", **args)
-        return True
-
     def _build_gui(self) -> None:
-        """The control panel (docked right), top to bottom: status, run control (live) or replay, view,
-        inspect, faults and planned faults (live), display; then the plots panel (docked left). Each panel
-        has its own builder; the order of the calls is the order on the page."""
+        """The control panel (docked right), top to bottom: status, replay (or, live, an operator's run
+        control), view, inspect, (an operator's faults and planned faults), display; then the plots panel
+        (docked left). Each panel has its own builder; the order of the calls is the order on the page."""
         self._gui_frame()
-        if self.live:
-            self._gui_run_control()
-        else:
+        if not self.live:
             self._gui_replay()
         self._gui_view()
         self._gui_inspect()
-        if self.live:
-            self._gui_faults()
-            self._gui_plan_fault()
         self._gui_display()
         self._gui_plots_panel()
+        # where an operator tab's own controls go (dashboards/operator.py): run control under the status,
+        # faults and the plan-fault form between inspect and display
+        a, b = self.f_inspect.order, self.f_display.order
+        self._operator_orders = {"run": (self.g_status.order + self.f_view.order) / 2,
+                                 "faults": a + (b - a) / 3, "plan": a + 2 * (b - a) / 3}
 
     def _gui_frame(self) -> None:
         """The theme, the docked control panel, the plot bookkeeping and the status line at its top."""
@@ -657,30 +665,9 @@ class DashboardUI:
         self.h_plots: dict = {}
         self._plot_order = {k: 100 + i for i, k in enumerate(["errors", "tmsee", "disagreement", "lambda2", "rates"])}
         self.g_status = gui.add_markdown("waiting for the first tick …")
-
-    def _gui_run_control(self) -> None:
-        """Live: pause / resume / step n ticks, and the realtime factor (control/pause, resume, step, speed)."""
-        gui = self.server.gui
-        with gui.add_folder("Run control"):
-            bg = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
-            self.g_step_n = gui.add_number("Step ticks", 1, min=1, max=10_000, step=1)
-            self.g_speed = gui.add_slider("Speed ×", 0.05, 4.0, 0.05, min(4.0, max(0.05, round(self.info.speed, 2))),
-                                          hint="realtime factor (control/speed)")
-
-            @bg.on_click
-            def _(event) -> None:
-                v = event.target.value
-                if v == "Pause":
-                    self.control("pause")
-                elif v == "Resume":
-                    self.control("resume")
-                elif v == "Step":
-                    self.control("step", n=int(self.g_step_n.value))
-
-            @self.g_speed.on_update
-            def _(event) -> None:
-                if event.client is not None:
-                    self.control("speed", factor=float(self.g_speed.value))
+        if self.live:
+            gui.add_markdown("*read-only; the run and fault controls are on the run's operator link "
+                             "(`flocktrack run` prints it)*")
 
     def _gui_replay(self) -> None:
         """Replay: the tick slider, play / pause / first / last, and the playback speed."""
@@ -714,7 +701,8 @@ class DashboardUI:
     def _gui_view(self) -> None:
         """The camera: follow the flock (on until the user moves the camera), and reset the framing."""
         gui = self.server.gui
-        with gui.add_folder("View"):
+        self.f_view = gui.add_folder("View")
+        with self.f_view:
             self.g_follow = gui.add_checkbox("Follow the flock", True,
                                              hint="keep the camera on the flock (moving the camera stops it)")
             b_reset = gui.add_button("Reset view", hint="frame the flock and the target, and follow them again")
@@ -725,7 +713,8 @@ class DashboardUI:
         """The selected sensor (also set by clicking it in the scene), its covariance ellipse and its text."""
         gui = self.server.gui
         ids = [str(i) for i in range(self.info.n)] or ["0"]
-        with gui.add_folder("Inspect"):
+        self.f_inspect = gui.add_folder("Inspect")
+        with self.f_inspect:
             self.g_node = gui.add_dropdown("Sensor", ids, initial_value=ids[0])
             self.g_ellipse = gui.add_checkbox("Covariance ellipse", True)
             self.g_nsig = gui.add_slider("Ellipse n·σ", 1.0, 50.0, 1.0, 2.0, hint="size of the ellipse in σ")
@@ -742,77 +731,15 @@ class DashboardUI:
                     self.selected = i
                     self.dirty = True
                     self._last_plot_k = None
-                if self.live:
-                    for h in (self.g_kill_id, self.g_link_a):
+                for panel in list(self.operators.panels.values()):
+                    for h in (panel.g_kill_id, panel.g_link_a):
                         h.value = i
-
-    def _gui_faults(self) -> None:
-        """Live: kill / restart a sensor, drop / heal a link, link loss, partition / heal the flock, and an
-        outlier burst (control/kill, restart, link_drop, link_heal, link_loss, partition, heal, outlier_burst)."""
-        gui = self.server.gui
-        top = max(self.info.n - 1, 0)
-        with gui.add_folder("Faults (control/**)"):
-            self.g_kill_id = gui.add_number("Sensor id", 0, min=0, max=top, step=1)
-            kb = gui.add_button_group("Process", ("Kill sensor", "Restart sensor"))
-            self.g_link_a = gui.add_number("Link a", 0, min=0, max=top, step=1)
-            self.g_link_b = gui.add_number("Link b", 1 if self.info.n > 1 else 0, min=0, max=top, step=1)
-            lb = gui.add_button_group("Link", ("Drop link", "Heal link"))
-            self.g_loss = gui.add_slider("Link loss p", 0.0, 1.0, 0.05, 0.0)
-            b_loss = gui.add_button("Set link loss")
-            pb = gui.add_button_group("Flock", ("Partition", "Heal all"))
-            self.g_burst_agent = gui.add_number("Outlier sensor (−1 = all)", -1, min=-1, max=top, step=1)
-            self.g_burst_ticks = gui.add_number("Outlier ticks", 20, min=1, max=100_000, step=1)
-            self.g_burst_mag = gui.add_number("Outlier magnitude", 5.0, min=0.0, max=1e6, step=0.5)
-            b_burst = gui.add_button("Inject outlier burst")
-
-        @kb.on_click
-        def _(event) -> None:
-            verb = "kill" if event.target.value == "Kill sensor" else "restart"
-            self.control(verb, agent=int(self.g_kill_id.value))
-
-        @lb.on_click
-        def _(event) -> None:
-            verb = "link_drop" if event.target.value == "Drop link" else "link_heal"
-            self.control(verb, a=int(self.g_link_a.value), b=int(self.g_link_b.value))
-
-        @b_loss.on_click
-        def _(event) -> None:
-            self.control("link_loss", p=float(self.g_loss.value))
-
-        @pb.on_click
-        def _(event) -> None:
-            if event.target.value == "Partition":
-                self.control("partition", groups=self.partition_groups())
-            else:
-                self.control("heal")
-
-        @b_burst.on_click
-        def _(event) -> None:
-            self.control("outlier_burst", agent=int(self.g_burst_agent.value),
-                         ticks=int(self.g_burst_ticks.value), magnitude=float(self.g_burst_mag.value))
-
-    def _gui_plan_fault(self) -> None:
-        """Live, folded: the "Plan fault" form (control/inject, see :meth:`inject_from_form`) and healing one
-        live fault by its id (control/heal_fault)."""
-        from agent.scenario import FAULT_KINDS
-
-        gui = self.server.gui
-        with gui.add_folder("Plan fault (control/inject)", expand_by_default=False):
-            self.g_inj_kind = gui.add_dropdown("Kind", FAULT_KINDS, initial_value="delay")
-            self.g_inj_targets = gui.add_text("Targets", "agents:0")
-            self.g_inj_params = gui.add_text("Parameters", "delay_ms=80 jitter_ms=20 direction=in")
-            self.g_inj_ticks = gui.add_number("Ticks (0 = until healed)", 100, min=0, max=10**7, step=1)
-            b_inj = gui.add_button("Inject")
-            self.g_inj_id = gui.add_number("Live fault id", 1000, min=1000, max=10**6, step=1)
-            b_heal_one = gui.add_button("Heal this fault")
-
-        b_inj.on_click(lambda _e: self.inject_from_form())
-        b_heal_one.on_click(lambda _e: self.control("heal_fault", id=int(self.g_inj_id.value)))
 
     def _gui_display(self) -> None:
         """Folded: what the scene shows (links, range circles, estimates, trail) and the error colour scale."""
         gui = self.server.gui
-        with gui.add_folder("Display", expand_by_default=False):
+        self.f_display = gui.add_folder("Display", expand_by_default=False)
+        with self.f_display:
             self.g_links = gui.add_checkbox("Links", True)
             self.g_circles = gui.add_checkbox("Range circles", self.info.n <= 40)
             self.g_estimates = gui.add_checkbox("Node estimates", True)
@@ -939,8 +866,11 @@ class LiveDashboard:
 
 def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "127.0.0.1",
              config_file: str | None = None, exit_on_end: bool = False, stop_event: threading.Event | None = None,
-             token: str = "dashboard/0") -> int:
+             token: str = "dashboard/0", operator_token: str | None = None) -> int:
+    """``token``: this process's liveliness token; ``operator_token``: the run's operator token (None: a
+    read-only page for everyone, see dashboards/operator.py)."""
     from agent.bus import ZenohBus
+
 
     stop_event = stop_event or threading.Event()
     # Zenoh's receive thread needs the GIL for every sample; with the default 5 ms switch interval a busy
@@ -950,9 +880,11 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
     bus = ZenohBus(run, connect=connect, config_file=config_file)
     state = DashboardState(info)
     loop = LiveDashboard(state, None, bus)
-    ui = DashboardUI(info, port=port, host=host, live=True, send_control=loop.send_control)
+    ui = DashboardUI(info, port=port, host=host, live=True, send_control=loop.send_control,
+                     operator_token=operator_token)
     loop.ui = ui
-    log.info("dashboard for run %s on http://%s:%d", run, host, ui.port)
+    log.info("dashboard for run %s on http://%s:%d (%s)", run, host, ui.port,
+             "controls for the operator link" if operator_token else "read-only for everyone")
     try:
         loop.attach()
         bus.declare_token(token)

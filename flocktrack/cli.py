@@ -86,7 +86,7 @@ def cmd_run(args) -> int:
                                      dashboard_port=args.dashboard_port if args.dashboard else None,
                                      keep_dashboard=args.dashboard and not args.no_linger,
                                      secure_dir=(args.keys or str(out / "keys")) if args.secure else None,
-                                     on_results=report)
+                                     on_results=report, dashboard_token=args.dashboard_token)
     if info.get("rc") not in (0, None):
         print(f"error: run ended with code {info['rc']}; see {out}/logs/", file=sys.stderr)
         return 1
@@ -230,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="also show every process's log lines (always in OUT/logs/; without -v: warnings and errors)")
     r.add_argument("--dashboard", action="store_true", help="zenoh: start the live Viser dashboard")
     r.add_argument("--dashboard-port", type=int, default=8080)
+    r.add_argument("--dashboard-token", help="the dashboard's operator token (default: a new one, its link printed "
+                                             "once); without it the page is read-only")
     r.add_argument("--no-linger", action="store_true", help="close the dashboard when the run ends")
     r.add_argument("--secure", action="store_true",
                    help="zenoh: TLS + mTLS + per-process passwords + router ACL (keys made in --keys DIR if absent)")

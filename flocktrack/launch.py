@@ -124,7 +124,8 @@ class Launcher:
                  mode: str, port: int | None = None, policy: RestartPolicy = RestartPolicy(),
                  record_to: Path | None = None, meta_file: Path | None = None, quiet: bool = False,
                  extra_children: list[tuple[str, list[str]]] | None = None, dashboard_port: int | None = None,
-                 keys=None, mesh=None, fusion: bool = False, verbose: bool = False):
+                 keys=None, mesh=None, fusion: bool = False, verbose: bool = False,
+                 dashboard_token: str | None = None):
         self.fusion = bool(fusion)  # start the fusion solver process (scenarios with [uavs]/[fusion])
         self.run, self.run_dir, self.n = run, Path(run_dir), int(n_sensors)
         self.scenario_file, self.design_file, self.mode = scenario_file, design_file, mode
@@ -152,6 +153,8 @@ class Launcher:
         self.stopping = threading.Event()   #: set once the launcher is stopping (no more restarts)
         self.extra_children = extra_children or []
         self.dashboard_port = dashboard_port
+        #: the dashboard's operator token (dashboards/operator.py), kept 0600 in the run directory
+        self.dashboard_token = dashboard_token
         self.ctl_bus = None
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
 
@@ -173,7 +176,13 @@ class Launcher:
         for name, argv in self.extra_children:
             kids.append(Child(name, argv, RestartPolicy("never"), self.run_dir / "logs" / f"{name.replace('/', '_')}.log"))
         if self.dashboard_port is not None:
-            kids.append(Child("dashboard/0", [py, "-m", "dashboards", "--port", str(self.dashboard_port), *sc,
+            who = ["--viewer-only"]
+            if self.dashboard_token:
+                from dashboards.operator import write_token
+
+                write_token(self.run_dir / "dashboard_token", self.dashboard_token)
+                who = ["--operator-token-file", str(self.run_dir / "dashboard_token")]
+            kids.append(Child("dashboard/0", [py, "-m", "dashboards", "--port", str(self.dashboard_port), *sc, *who,
                                               *self._common()], RestartPolicy("on-failure", 3),
                               self.run_dir / "logs" / "dashboard.log"))
         for i in range(self.n):

@@ -19,6 +19,7 @@ import tomli_w
 
 from agent.assemble import extra_processes
 from agent.scenario import Scenario
+from dashboards.operator import new_token, operator_url
 
 from .build import design as make_design
 from .launch import Launcher, RestartPolicy
@@ -102,7 +103,8 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
                      max_restarts: int = 3, quiet: bool = False, on_poll=None,
                      timeout_s: float | None = None, dashboard_port: int | None = None,
                      keep_dashboard: bool = False, secure_dir: str | Path | None = None,
-                     mesh=None, verbose: bool = False, on_results=None) -> tuple[dict, dict]:
+                     mesh=None, verbose: bool = False, on_results=None,
+                     dashboard_token: str | None = None) -> tuple[dict, dict]:
     """Process per agent over an embedded router; metrics are recomputed from the recording.
 
     The terminal gets a live status line (flocktrack/status.py) and the children's warnings and errors
@@ -115,7 +117,10 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     name its ACL was written for.
 
     ``mesh``: a :class:`flocktrack.secure.Mesh` placing the processes on several hosts, each with its
-    own router (tests/test_multihost.py)."""
+    own router (tests/test_multihost.py).
+
+    ``dashboard_token``: the dashboard's operator token (default: a new one per run; its link is printed
+    once and the token kept 0600 in ``out/dashboard_token``). Without it the page is read-only."""
     scen_file, design_file, dsg, meta_file = write_inputs(sc, data, out)
     run = f"{sc.run.name}-{uuid.uuid4().hex[:8]}"
     keys = None
@@ -127,7 +132,8 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     launcher = Launcher(run, out, sc.sensors.n, scen_file, design_file, sc.run.mode, port=port,
                         policy=RestartPolicy(restart, max_restarts), record_to=out / "recording.mcap",
                         meta_file=meta_file, quiet=quiet, dashboard_port=dashboard_port, keys=keys,
-                        mesh=mesh, fusion="fusion" in extra_processes(sc), verbose=verbose)
+                        mesh=mesh, fusion="fusion" in extra_processes(sc), verbose=verbose,
+                        dashboard_token=(dashboard_token or new_token()) if dashboard_port is not None else None)
     stop_signals = _stop_on_signals(launcher)
     t0 = time.perf_counter()
     t_end: float | None = None
@@ -137,6 +143,10 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
     try:
         launcher.start()
         if not quiet:
+            if dashboard_port is not None:
+                print(f"dashboard operator link (its buttons steer the run; keep it private, token in "
+                      f"{out}/dashboard_token): {operator_url('localhost', dashboard_port, launcher.dashboard_token)}",
+                      file=sys.stderr)
             status = _announce(sc, run, launcher, keys, out)
         polls = [f for f in (on_poll, status and (lambda _l: status.poll())) if f]
         rc = launcher.wait(timeout_s=timeout_s, on_poll=(lambda lnch: [f(lnch) for f in polls]) if polls else None)

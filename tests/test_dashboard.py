@@ -544,13 +544,16 @@ def test_viser_ui_renders_and_buttons_queue_controls():
     from flocktrack.launch import free_port
 
     from dashboards.live import DashboardUI
+    from dashboards.operator import inject_from_form
 
     n = 12
     st = DashboardState(RunInfo(n=n, link_range=12.0, name="t"))
     feed(st, synth(n, 30))
     sent = []
-    ui = DashboardUI(st.info, port=free_port(), live=True, send_control=lambda v, a: sent.append((v, a)))
+    ui = DashboardUI(st.info, port=free_port(), live=True, send_control=lambda v, a: sent.append((v, a)),
+                     operator_token="t0ken")
     try:
+        op = ui.add_operator_panel(ui.server.gui, None)   # (a browser tab's own GUI in a real page)
         sa = ui.render_scene(st.snapshot(), st.series(last=200)["err"])
         assert sa is not None and ui.h_sensors.visible and ui.h_links.visible
         assert ui.render_scene(st.snapshot()) is None  # same tick, nothing to redraw
@@ -558,18 +561,18 @@ def test_viser_ui_renders_and_buttons_queue_controls():
         assert set(ui.h_plots) == {"errors", "tmsee", "disagreement", "lambda2", "rates"}
         ui.render_status(st.summary())
         ui.select(4)
-        assert ui.g_node.value == "4" and ui.g_kill_id.value == 4
+        assert ui.g_node.value == "4" and op.g_kill_id.value == 4
         ui.control("kill", agent=4)
         groups = ui.partition_groups()
         assert sorted(groups) == [0] * 6 + [1] * 6
         assert sent == [("kill", {"agent": 4})]
-        ui.g_inj_kind.value, ui.g_inj_targets.value = "delay", "agents:2 "
-        ui.g_inj_params.value, ui.g_inj_ticks.value = "delay_ms=80 jitter_ms=20.5 direction=in", 50
-        assert ui.inject_from_form()
+        op.g_inj_kind.value, op.g_inj_targets.value = "delay", "agents:2 "
+        op.g_inj_params.value, op.g_inj_ticks.value = "delay_ms=80 jitter_ms=20.5 direction=in", 50
+        assert inject_from_form(op, ui.control)
         assert sent[-1] == ("inject", {"delay_ms": 80, "jitter_ms": 20.5, "direction": "in", "kind": "delay",
                                        "targets": "agents:2", "ticks": 50})
-        ui.g_inj_params.value = "delay_ms 80"
-        assert not ui.inject_from_form() and len(sent) == 2 and "name=value" in ui.g_inj_params.value
+        op.g_inj_params.value = "delay_ms 80"
+        assert not inject_from_form(op, ui.control) and len(sent) == 2 and "name=value" in op.g_inj_params.value
     finally:
         ui.stop()
 

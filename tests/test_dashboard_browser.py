@@ -29,11 +29,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dashboards.operator import TOKEN_ENV, operator_url
+
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 VICTIM = 3              # the sensor the page kills
+OPERATOR_TOKEN = "browser-test-operator"
 LINK = (0, 1)           # the link the page drops (neighbours in the initial grid)
 
 pytestmark = pytest.mark.slow
@@ -134,7 +137,7 @@ def drive_browser(port: int, out: dict, shots: Path, world: WorldWatch) -> None:
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
             mark("port open")
-            page.goto(f"http://127.0.0.1:{port}/")
+            page.goto(operator_url("127.0.0.1", port, OPERATOR_TOKEN))   # the operator's page: the controls
             _wait_tick(page, FIRST_SHOT_TICK)                 # the scene is live, a few ticks in
             mark("scene", page)
             _wait_tick(page, world.k - 8)                     # caught up with the run
@@ -219,7 +222,8 @@ def session(tmp_path_factory):
     th = threading.Thread(target=drive_browser, args=(port, results, shots, world), daemon=True)
     th.start()
     try:
-        summary, info = run_zenoh_to_dir(sc, data, out_dir, dashboard_port=port, quiet=True, on_poll=world,
+        summary, info = run_zenoh_to_dir(sc, data, out_dir, dashboard_port=port, dashboard_token=OPERATOR_TOKEN,
+                                         quiet=True, on_poll=world,
                                          timeout_s=900)
     finally:
         world.close()
@@ -387,8 +391,8 @@ class LiveDashboardOn:
     so that a test can write exactly the awkward stream it wants (no run reproduces a starved machine on
     demand). Entered once the dashboard is subscribed (its liveliness token is up) and serving."""
 
-    def __init__(self, run: str, scenario: Path = DEMO, log: Path | None = None):
-        self.run, self.scenario, self.log = run, scenario, log
+    def __init__(self, run: str, scenario: Path = DEMO, log: Path | None = None, env: dict | None = None):
+        self.run, self.scenario, self.log, self.env = run, scenario, log, env
 
     def __enter__(self):
         import subprocess
@@ -402,7 +406,8 @@ class LiveDashboardOn:
         self._out = open(self.log, "wb") if self.log else subprocess.DEVNULL
         self.proc = subprocess.Popen([sys.executable, "-m", "dashboards", "--run", self.run, "--connect",
                                       f"tcp/127.0.0.1:{zport}", "--port", str(self.port), "--scenario",
-                                      str(self.scenario)], cwd=str(ROOT), stdout=self._out, stderr=subprocess.STDOUT)
+                                      str(self.scenario)], cwd=str(ROOT), stdout=self._out, stderr=subprocess.STDOUT,
+                                     env=dict(os.environ, **(self.env or {})))
         self.bus = ZenohBus(self.run, connect=f"tcp/127.0.0.1:{zport}")
         members: set[str] = set()
         self.bus.watch_members(lambda name, alive: members.add(name) if alive else members.discard(name))
@@ -430,14 +435,15 @@ class LiveDashboardOn:
         self.router.close()
 
 
-def _open_live_page(p, dash: "LiveDashboardOn"):
-    """Chromium on the dashboard's page, once the page is live (it shows "world at -1": nothing published
-    yet); returns the browser, the page and the list its page errors go to."""
-    browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+def _open_live_page(p, dash: "LiveDashboardOn", url: str | None = None, browser=None):
+    """Chromium on the dashboard's page (``url``, default the plain read-only one), once the page is live
+    (it shows "world at -1": nothing published yet); returns the browser, the page and the list its page
+    errors go to."""
+    browser = browser or p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
     page = browser.new_page(viewport={"width": 1280, "height": 800})
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(f"http://127.0.0.1:{dash.port}/")
+    page.goto(url or f"http://127.0.0.1:{dash.port}/")
     page.wait_for_function("() => /\\(world at -1\\)/.test(document.body.innerText)", timeout=60_000,
                            polling=500)
     return browser, page, errors
@@ -710,3 +716,34 @@ def test_readmes_main_job_as_a_user_runs_it_on_a_loaded_machine(tmp_path):
     assert len(set(counts)) >= 4 and counts == sorted(counts) and counts[-1] == ticks, err[-20:]
     assert (out / "summary.json").is_file() and (out / "metrics.csv").is_file()
     assert f"results in {out}/" in proc.stdout.read()
+
+
+def test_only_the_operator_link_shows_and_works_the_controls():
+    """Read-only by default: a plain page and a page with a wrong token show the flock but no control at all,
+    and nothing reaches control/**; the operator link (the run's token in the websocket path) shows them,
+    and its click is published."""
+    _require_browser()
+    from playwright.sync_api import sync_playwright
+
+    token = "s3cret-operator-token"
+    with LiveDashboardOn("auth", env={TOKEN_ENV: token}) as dash, sync_playwright() as p:
+        got: list = []
+        dash.bus.subscribe("control/**", lambda key, m: got.append((key, m.args)))
+        browser, viewer, errors = _open_live_page(p, dash)
+        _, wrong, _ = _open_live_page(p, dash, operator_url("127.0.0.1", dash.port, "not-the-token"), browser)
+        _, op, _ = _open_live_page(p, dash, operator_url("127.0.0.1", dash.port, token), browser)
+        op.get_by_role("button", name="Kill sensor").wait_for(timeout=60_000)
+        for page in (viewer, wrong):
+            page.wait_for_timeout(1000)
+            for name in ("Kill sensor", "Pause", "Drop link", "Inject", "Set link loss"):
+                assert page.get_by_role("button", name=name).count() == 0, name
+            assert "Inspect" in page.inner_text("body")         # the read-only panels are there
+        dash.bus.poll(0.5)
+        assert got == []
+        op.get_by_role("button", name="Kill sensor").click()
+        end = time.monotonic() + 30
+        while not got and time.monotonic() < end:
+            dash.bus.poll(0.2)
+        assert got == [("control/kill", {"agent": 0})], got
+        assert not errors
+        browser.close()

@@ -1,0 +1,110 @@
+"""Who may steer a run from the dashboard (dashboards/operator.py), at the protocol level: websocket clients
+written by hand (the page's own wire format, msgpack over Viser's websocket), one with the run's operator
+token in its path, one with a wrong one, one with none. Only the first gets controls, and the others cannot
+press them even by sending the operator's button id themselves. (The browser-level test is in
+tests/test_dashboard_browser.py; the launcher's token file and printed link are checked here too.)"""
+
+import os
+import stat
+import time
+
+import msgspec
+import pytest
+
+from dashboards.operator import Operators, operator_url, write_token
+from dashboards.state import RunInfo
+from flocktrack.launch import free_port
+
+
+def _connect(port: int, path: str):
+    import viser
+    from websockets.sync.client import connect
+
+    ws = connect(f"ws://127.0.0.1:{port}{path}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None,
+                 open_timeout=30)
+    # Viser counts a tab as connected once it reports its camera
+    ws.send(msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0],
+                                    "position": [0.0, -30.0, 20.0], "fov": 1.0, "near": 0.01, "far": 1000.0,
+                                    "image_height": 800, "image_width": 600, "look_at": [0.0, 0.0, 0.0],
+                                    "up_direction": [0.0, 0.0, 1.0]}))
+    return ws
+
+
+def _press(ws, uuid: str) -> None:
+    """What the page sends when a button is clicked."""
+    ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": True}}))
+
+
+def _wait(cond, timeout_s: float = 20.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while not cond() and time.monotonic() < end:
+        time.sleep(0.05)
+    return cond()
+
+
+def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_them():
+    from dashboards.live import DashboardUI
+
+    sent: list = []
+    ui = DashboardUI(RunInfo(n=5, link_range=12.0, name="auth"), port=free_port(), live=True,
+                     send_control=lambda v, a: sent.append((v, a)), operator_token="the-token")
+    socks = []
+    try:
+        viewer = _connect(ui.port, "/")
+        wrong = _connect(ui.port, "/operator/not-the-token")
+        socks += [viewer, wrong]
+        assert _wait(lambda: len(ui.server.get_clients()) == 2)
+        assert ui.operators.panels == {}                          # no tab is an operator yet
+        op = _connect(ui.port, "/operator/the-token")
+        socks.append(op)
+        assert _wait(lambda: len(ui.operators.panels) == 1)
+        (cid, panel), = ui.operators.panels.items()
+        assert cid in ui.server.get_clients()
+        uuid = panel.b_burst._impl.uuid                           # the operator tab's "Inject outlier burst"
+        for ws in (viewer, wrong):                                # others pressing it: nothing happens
+            _press(ws, uuid)
+        time.sleep(1.5)
+        assert sent == []
+        _press(op, uuid)                                          # the operator pressing it: sent
+        assert _wait(lambda: sent == [("outlier_burst", {"agent": -1, "ticks": 20, "magnitude": 5.0})]), sent
+        op.close()
+        assert _wait(lambda: ui.operators.panels == {})           # its controls go with its tab
+    finally:
+        for ws in socks:
+            ws.close()
+        ui.stop()
+
+
+def test_a_replay_or_tokenless_page_has_no_operator():
+    ops = Operators(None)
+    assert not ops.is_operator("/operator/") and not ops.is_operator("/operator/x")
+    ops = Operators("tok")
+    assert ops.is_operator("/operator/tok") and not ops.is_operator("/operator/tok2")
+    assert not ops.is_operator("/tok") and not ops.is_operator(None)
+    assert not ops.allowed(7) and ops.refused == 1
+
+
+def test_token_file_is_private_and_the_link_carries_the_token(tmp_path):
+    p = tmp_path / "dashboard_token"
+    write_token(p, "abc")
+    assert p.read_text() == "abc\n" and stat.S_IMODE(os.stat(p).st_mode) == 0o600
+    write_token(p, "def")   # a re-run overwrites it, still private
+    assert p.read_text() == "def\n" and stat.S_IMODE(os.stat(p).st_mode) == 0o600
+    assert operator_url("localhost", 8080, "abc") == "http://localhost:8080/?websocket=ws://localhost:8080/operator/abc"
+
+
+@pytest.mark.parametrize("token", [None, "given-token"])
+def test_the_launcher_hands_its_dashboard_the_token_file_or_makes_it_read_only(tmp_path, token):
+    from pathlib import Path
+
+    from flocktrack.launch import Launcher
+
+    launcher = Launcher("r", tmp_path, 2, Path("s.toml"), None, "realtime", port=7447, dashboard_port=8080,
+                        dashboard_token=token)
+    argv = next(c.argv for c in launcher.plan() if c.name == "dashboard/0")
+    if token is None:
+        assert "--viewer-only" in argv and "--operator-token-file" not in argv
+    else:
+        f = Path(argv[argv.index("--operator-token-file") + 1])
+        assert f == tmp_path / "dashboard_token" and f.read_text().strip() == token
+        assert token not in " ".join(argv)                       # never on a command line (ps shows those)
