@@ -41,6 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--operator-token-file", help="live: file holding the run's operator token (default: "
                                                   "$FLOCKTRACK_DASHBOARD_TOKEN, else a new token, its link logged)")
     ap.add_argument("--viewer-only", action="store_true", help="live: no operator at all (a read-only page)")
+    ap.add_argument("--tls-cert", help="live: serve the page over HTTPS with this certificate (PEM) ...")
+    ap.add_argument("--tls-key", help="... and its key (a secure run's: certs/dashboard-web.{pem,key})")
     ap.add_argument("--play", action="store_true", help="replay: start playing at once")
     ap.add_argument("--png", help="replay: write a static PNG of the recording and exit (no server)")
     ap.add_argument("--tick", type=int, default=None, help="--png: the tick to draw (default: the last)")
@@ -88,11 +90,14 @@ def main(argv: list[str] | None = None) -> int:
         return run_replay(args.recording, args.port, host=args.host, stop_event=stop, autoplay=args.play)
     if not (args.run and args.scenario):
         ap.error("live mode needs --run and --scenario (or give --recording)")
+    if bool(args.tls_cert) != bool(args.tls_key):
+        ap.error("--tls-cert and --tls-key go together")
     from .state import RunInfo
 
     info = RunInfo.from_files(args.scenario, args.design)
     return run_live(args.run, args.connect, args.port, info, host=args.host, config_file=args.config,
-                    exit_on_end=args.exit_on_end, stop_event=stop, operator_token=_operator_token(args))
+                    exit_on_end=args.exit_on_end, stop_event=stop, operator_token=_operator_token(args),
+                    tls=(args.tls_cert, args.tls_key) if args.tls_cert else None)
 
 
 def _operator_token(args) -> str | None:
@@ -110,7 +115,7 @@ def _operator_token(args) -> str | None:
     token = new_token()
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
     logging.getLogger("dashboards").info("operator link (steers the run; keep it private): %s",
-                                         operator_url(shown, args.port, token))
+                                         operator_url(shown, args.port, token, tls=bool(args.tls_cert)))
     return token
 
 

@@ -208,7 +208,9 @@ class DashboardUI:
 
     def __init__(self, info: RunInfo, port: int = 8080, host: str = "127.0.0.1", *, live: bool = True,
                  send_control=None, replay: ReplayModel | None = None, verbose: bool = False,
-                 operator_token: str | None = None):
+                 operator_token: str | None = None, tls: tuple[str, str] | None = None):
+        """``tls``: (certificate, key) files — the page is then HTTPS on ``host:port`` (dashboards/tls.py)
+        and Viser itself listens on a free port of 127.0.0.1 behind it."""
         import viser
 
         from .operator import Operators
@@ -216,10 +218,18 @@ class DashboardUI:
         self.info, self.live, self.replay = info, live, replay
         self.operators = Operators(operator_token if live else None)
         self.send_control = send_control
-        self.server = viser.ViserServer(host=host, port=port, label=f"flocktrack · {info.name}", verbose=verbose) \
+        v_host, v_port = ("127.0.0.1", 0) if tls else (host, port)
+        self.server = viser.ViserServer(host=v_host, port=v_port, label=f"flocktrack · {info.name}",
+                                        verbose=verbose) \
             if "verbose" in viser.ViserServer.__init__.__code__.co_varnames \
-            else viser.ViserServer(host=host, port=port, label=f"flocktrack · {info.name}")
-        self.port = self.server.get_port()
+            else viser.ViserServer(host=v_host, port=v_port, label=f"flocktrack · {info.name}")
+        self.tls_front = None
+        if tls:
+            from .tls import TlsFront
+
+            self.tls_front = TlsFront(host, port, self.server.get_port(), *tls)
+        self.port = self.tls_front.port if self.tls_front else self.server.get_port()
+        self.scheme = "https" if tls else "http"
         self.selected: int | None = 0 if info.n else None
         self.dirty = True                 # redraw even if the tick did not change
         self.timings = UiTimings()
@@ -783,6 +793,8 @@ class DashboardUI:
         return [int(v) for v in g]
 
     def stop(self) -> None:
+        if self.tls_front is not None:
+            self.tls_front.close()
         try:
             self.server.stop()
         except Exception:  # already stopped
@@ -866,7 +878,8 @@ class LiveDashboard:
 
 def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "127.0.0.1",
              config_file: str | None = None, exit_on_end: bool = False, stop_event: threading.Event | None = None,
-             token: str = "dashboard/0", operator_token: str | None = None) -> int:
+             token: str = "dashboard/0", operator_token: str | None = None,
+             tls: tuple[str, str] | None = None) -> int:
     """``token``: this process's liveliness token; ``operator_token``: the run's operator token (None: a
     read-only page for everyone, see dashboards/operator.py)."""
     from agent.bus import ZenohBus
@@ -881,9 +894,9 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
     state = DashboardState(info)
     loop = LiveDashboard(state, None, bus)
     ui = DashboardUI(info, port=port, host=host, live=True, send_control=loop.send_control,
-                     operator_token=operator_token)
+                     operator_token=operator_token, tls=tls)
     loop.ui = ui
-    log.info("dashboard for run %s on http://%s:%d (%s)", run, host, ui.port,
+    log.info("dashboard for run %s on %s://%s:%d (%s)", run, ui.scheme, host, ui.port,
              "controls for the operator link" if operator_token else "read-only for everyone")
     try:
         loop.attach()

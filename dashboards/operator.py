@@ -37,9 +37,10 @@ def new_token() -> str:
     return secrets.token_urlsafe(18)
 
 
-def operator_url(host: str, port: int, token: str) -> str:
+def operator_url(host: str, port: int, token: str, tls: bool = False) -> str:
     """The link that opens the page as an operator (print it once; it is the password)."""
-    return f"http://{host}:{port}/?websocket=ws://{host}:{port}{PATH_PREFIX}{token}"
+    s = "s" if tls else ""
+    return f"http{s}://{host}:{port}/?websocket=ws{s}://{host}:{port}{PATH_PREFIX}{token}"
 
 
 def write_token(path: Path, token: str) -> None:

@@ -80,7 +80,7 @@ def cmd_run(args) -> int:
         report(summary, info)
         return 0
     if args.dashboard:
-        print(f"dashboard: http://localhost:{args.dashboard_port}", file=sys.stderr)
+        print(f"dashboard: http{'s' if args.secure else ''}://localhost:{args.dashboard_port}", file=sys.stderr)
     summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
                                      max_restarts=args.max_restarts, quiet=args.quiet, verbose=args.verbose,
                                      dashboard_port=args.dashboard_port if args.dashboard else None,
@@ -145,7 +145,7 @@ def cmd_ps(args) -> int:
     """The runs reachable on a router (default: every run of this machine's launchers)."""
     from .ps import as_json, discover, table
 
-    runs, failed = discover(args.connect, args.config)
+    runs, failed = discover(args.connect, args.config, args.run)
     for f in failed:
         print(f"warning: no router at {f}", file=sys.stderr)
     if args.json:
@@ -262,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     ps = sub.add_parser("ps", help="the runs reachable on a router: name, tick, mode, members, endpoint")
     ps.add_argument("--connect", help="a router (default: every local launcher's)")
     ps.add_argument("--config", help="Zenoh client config for --connect")
+    ps.add_argument("--run", help="only this run (a secure router answers a client about its own run only)")
     ps.add_argument("--json", action="store_true", help="as JSON")
     ps.set_defaults(fn=cmd_ps)
     lg = sub.add_parser("logs", help="the per-process logs of a run; -f follows them")

@@ -338,6 +338,29 @@ class KeySet:
     def ca(self) -> Path:
         return self.dir / "ca.pem"
 
+    def web_cert(self) -> tuple[Path, Path]:
+        """The dashboard's HTTPS certificate and key (``certs/dashboard-web.*``, a server certificate of the
+        run's CA for its host names), made now if this key set predates it."""
+        pem, key = self.cert(WEB_IDENT)
+        if not pem.exists():
+            from cryptography import x509
+            from cryptography.hazmat.primitives import serialization
+
+            ca_key = serialization.load_pem_private_key((self.dir / "ca.key").read_bytes(), None)
+            ca_cert = x509.load_pem_x509_certificate(self.ca.read_bytes())
+            _issue_to(self.dir, ca_key, ca_cert, WEB_IDENT, list(self.hosts or DEFAULT_HOSTS))
+        return pem, key
+
+
+#: the dashboard page's HTTPS identity (a server certificate; not a Zenoh identity, it has no password)
+WEB_IDENT = "dashboard-web"
+
+
+def _issue_to(out: Path, ca_key, ca_cert, ident: str, hosts: list[str], days: int = 365) -> None:
+    key, cert = issue(ca_key, ca_cert, ident, hosts=hosts, days=days)
+    _write_private(out / "certs" / f"{ident}.key", key_pem(key))
+    (out / "certs" / f"{ident}.pem").write_bytes(cert_pem(cert))
+
 
 def make_keys(out: str | Path, run: str, n_sensors: int, endpoint: str = "tls/localhost:7447",
               hosts: list[str] = DEFAULT_HOSTS, routers: list[str] = ("router",), lease_ms: int = 2000,
@@ -355,10 +378,9 @@ def make_keys(out: str | Path, run: str, n_sensors: int, endpoint: str = "tls/lo
     passwords: dict[str, str] = {}
     idents = identities(n_sensors) + [r for r in routers if r != "router"]
     for ident in idents:
-        key, cert = issue(ca_key, ca_cert, ident, hosts=list(hosts) if ident in routers else [], days=days)
-        _write_private(out / "certs" / f"{ident}.key", key_pem(key))
-        (out / "certs" / f"{ident}.pem").write_bytes(cert_pem(cert))
+        _issue_to(out, ca_key, ca_cert, ident, list(hosts) if ident in routers else [], days)
         passwords[ident] = secrets.token_urlsafe(24)
+    _issue_to(out, ca_key, ca_cert, WEB_IDENT, list(hosts), days)
     _write_private(out / "passwords.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
     block = acl(run, n_sensors, routers)
     (out / "acl.json5").write_text(format_acl(block, f"access_control for run {run} ({n_sensors} sensors), generated "

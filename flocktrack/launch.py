@@ -182,6 +182,8 @@ class Launcher:
 
                 write_token(self.run_dir / "dashboard_token", self.dashboard_token)
                 who = ["--operator-token-file", str(self.run_dir / "dashboard_token")]
+            if self.keys is not None:   # a secure run's page is HTTPS with a certificate of the run's CA
+                who += [a for flag, f in zip(("--tls-cert", "--tls-key"), self.keys.web_cert()) for a in (flag, str(f))]
             kids.append(Child("dashboard/0", [py, "-m", "dashboards", "--port", str(self.dashboard_port), *sc, *who,
                                               *self._common()], RestartPolicy("on-failure", 3),
                               self.run_dir / "logs" / "dashboard.log"))

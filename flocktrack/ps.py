@@ -36,8 +36,10 @@ class RunSeen:
                 "members": " ".join(others), "endpoint": self.endpoint, "out": self.out}
 
 
-def runs_on(endpoint: str, config_file: str | None = None, listen_s: float = 0.6) -> dict[str, RunSeen]:
-    """The runs whose members hold tokens on the router at ``endpoint``."""
+def runs_on(endpoint: str, config_file: str | None = None, run: str | None = None,
+            listen_s: float = 0.6) -> dict[str, RunSeen]:
+    """The runs whose members hold tokens on the router at ``endpoint`` (only ``run``, if given: a secure
+    run's ACL lets a client ask about its own run only)."""
     import zenoh
 
     from agent.bus import zenoh_config
@@ -45,7 +47,8 @@ def runs_on(endpoint: str, config_file: str | None = None, listen_s: float = 0.6
     session = zenoh.open(zenoh_config(endpoint, None, "client", config_file))
     seen: dict[str, RunSeen] = {}
     try:
-        for reply in session.liveliness().get("ft/*/alive/**", timeout=2.0):
+        scope = f"ft/{run}" if run else "ft/*"
+        for reply in session.liveliness().get(f"{scope}/alive/**", timeout=2.0):
             if reply.ok is None:
                 continue
             parts = str(reply.ok.key_expr).split("/", 3)   # ft / <run> / alive / <member>
@@ -62,7 +65,7 @@ def runs_on(endpoint: str, config_file: str | None = None, listen_s: float = 0.6
             except Exception:  # a bad sample tells no tick
                 pass
 
-        sub = session.declare_subscriber("ft/*/world/tick", on_tick)
+        sub = session.declare_subscriber(f"{scope}/world/tick", on_tick)
         time.sleep(listen_s)
         sub.undeclare()
         for run, k in ticks.items():
@@ -73,16 +76,18 @@ def runs_on(endpoint: str, config_file: str | None = None, listen_s: float = 0.6
     return seen
 
 
-def discover(connect: str | None = None, config_file: str | None = None) -> tuple[list[RunSeen], list[str]]:
-    """The runs on ``connect`` (else on every local launcher's router), and the endpoints that failed."""
+def discover(connect: str | None = None, config_file: str | None = None,
+             run: str | None = None) -> tuple[list[RunSeen], list[str]]:
+    """The runs on ``connect`` (else each local launcher's run on its router), and the endpoints that failed."""
     local = {e.run: e for e in local_runs()}
-    targets: list[tuple[str, str | None]] = ([(connect, config_file)] if connect else
-                                             sorted({(e.endpoint, e.config) for e in local.values()}))
+    targets: list[tuple[str, str | None, str | None]] = (
+        [(connect, config_file, run)] if connect else
+        [(e.endpoint, e.config, e.run) for e in local.values() if run in (None, e.run)])
     found: dict[str, RunSeen] = {}
     failed = []
-    for ep, cfg in targets:
+    for ep, cfg, name in targets:
         try:
-            found.update(runs_on(ep, cfg))
+            found.update(runs_on(ep, cfg, name))
         except Exception as exc:  # zenoh.ZError: no router there (reported, not raised)
             failed.append(f"{ep} ({exc})")
     for run, r in found.items():

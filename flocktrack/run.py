@@ -145,7 +145,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
         if not quiet:
             if dashboard_port is not None:
                 print(f"dashboard operator link (its buttons steer the run; keep it private, token in "
-                      f"{out}/dashboard_token): {operator_url('localhost', dashboard_port, launcher.dashboard_token)}",
+                      f"{out}/dashboard_token): {operator_url('localhost', dashboard_port, launcher.dashboard_token, tls=keys is not None)}",
                       file=sys.stderr)
             status = _announce(sc, run, launcher, keys, out)
         polls = [f for f in (on_poll, status and (lambda _l: status.poll())) if f]

@@ -108,3 +108,44 @@ def test_the_launcher_hands_its_dashboard_the_token_file_or_makes_it_read_only(t
         f = Path(argv[argv.index("--operator-token-file") + 1])
         assert f == tmp_path / "dashboard_token" and f.read_text().strip() == token
         assert token not in " ".join(argv)                       # never on a command line (ps shows those)
+
+
+def test_a_secure_runs_page_is_https_with_the_runs_ca_and_the_token_still_decides(tmp_path):
+    """--secure: the page and its websocket over TLS (dashboards/tls.py) with the key set's dashboard-web
+    certificate; a client trusting the run's CA gets the page, plain HTTP gets nothing, and the operator
+    token in a wss:// path still makes the only operator."""
+    import ssl
+    import urllib.error
+    import urllib.request
+
+    import viser
+    from websockets.sync.client import connect
+
+    from dashboards.live import DashboardUI
+    from flocktrack.keys import make_keys
+
+    ks = make_keys(tmp_path / "keys", "auth", 2)
+    pem, key = ks.web_cert()
+    assert pem.is_file() and stat.S_IMODE(os.stat(key).st_mode) == 0o600
+    ui = DashboardUI(RunInfo(n=2, link_range=12.0, name="auth"), port=free_port(), live=True,
+                     send_control=lambda v, a: None, operator_token="tok", tls=(str(pem), str(key)))
+    try:
+        ctx = ssl.create_default_context(cafile=str(ks.ca))
+        with urllib.request.urlopen(f"https://localhost:{ui.port}/", context=ctx, timeout=30) as r:
+            assert r.status == 200 and b"<html" in r.read().lower()
+        with pytest.raises(OSError):   # no plain HTTP on the public port ...
+            urllib.request.urlopen(f"http://localhost:{ui.port}/", timeout=10).read()
+        with pytest.raises(urllib.error.URLError) as e:   # ... and a client must trust the run's CA
+            urllib.request.urlopen(f"https://localhost:{ui.port}/", context=ssl.create_default_context(),
+                                   timeout=10)
+        assert isinstance(e.value.reason, ssl.SSLCertVerificationError), e.value
+        ws = connect(f"wss://localhost:{ui.port}/operator/tok", ssl=ctx, subprotocols=[f"viser-v{viser.__version__}"],
+                     max_size=None, open_timeout=30)
+        ws.send(msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0],
+                                        "position": [0.0, -30.0, 20.0], "fov": 1.0, "near": 0.01, "far": 1000.0,
+                                        "image_height": 800, "image_width": 600, "look_at": [0.0, 0.0, 0.0],
+                                        "up_direction": [0.0, 0.0, 1.0]}))
+        assert _wait(lambda: len(ui.operators.panels) == 1)
+        ws.close()
+    finally:
+        ui.stop()
