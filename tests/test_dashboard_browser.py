@@ -295,7 +295,11 @@ def test_fault_buttons_publish_controls_with_effect_in_the_recording(session):
     est_k = [m.k for key, m, _ in rec.messages if key == f"agent/{VICTIM}/estimate"]
     last_tick = max(ticks)
     assert est_k and max(est_k) < last_tick - 10
-    assert max(est_k) >= kills[0].k - 10  # it estimated until shortly before the kill (realtime: may lag)
+    # it estimated until shortly before the kill: its last estimate was recorded at most 3 s before the kill
+    # command (by time: in realtime on a loaded machine a sensor may work ticks behind the world's clock)
+    t_kill = next(t for key, m, t in rec.messages if key == "control/kill")
+    t_last = max(t for key, m, t in rec.messages if key == f"agent/{VICTIM}/estimate")
+    assert t_last >= t_kill - 3e9, (t_kill - t_last) / 1e9
     dead = [k for k in ticks if not ticks[k].alive[VICTIM]]
     assert dead and min(dead) > kills[0].k and all(not ticks[k].alive[VICTIM] for k in range(min(dead), last_tick + 1))
     assert all(ticks[k].links[VICTIM] == [] for k in dead)
