@@ -883,6 +883,7 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
     """``token``: this process's liveliness token; ``operator_token``: the run's operator token (None: a
     read-only page for everyone, see dashboards/operator.py)."""
     from agent.bus import ZenohBus
+    from agent.runner import write_stats
 
 
     stop_event = stop_event or threading.Event()
@@ -912,6 +913,7 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
         log.info("dashboard model: %d ticks scored, %d leading partial ticks skipped, %d ticks never heard of, "
                  "%d late messages, %d missing estimates/states, %d invalid messages", len(state.series_buf),
                  state.partial_start, state.gap_ticks, state.late, state.missing_total, state.bus_dropped)
+        write_stats(token, bus, ui.operators)   # (bus counters, and the tabs: operators, viewers, wrong tokens)
         bus.close()
         ui.stop()
     return 0

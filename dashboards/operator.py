@@ -21,6 +21,7 @@ import hmac
 import logging
 import os
 import secrets
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,17 +85,31 @@ class Operators:
     def __init__(self, token: str | None):
         self.token = token
         self.panels: dict[int | None, OperatorPanel] = {}
-        self.refused = 0   #: control callbacks from tabs that are not operators (there should be none)
+        #: tabs by kind (operator_tabs, viewer_tabs, wrong_tokens: an operator path with another token) and
+        #: refused_controls (control callbacks from tabs that are not operators: there should be none);
+        #: the dashboard's stats file (stats/dashboard_0.json) carries them
+        self.counters: Counter = Counter()
+
+    @property
+    def refused(self) -> int:
+        return self.counters["refused_controls"]
 
     def is_operator(self, path: str | None) -> bool:
-        if not self.token or not path or not path.startswith(PATH_PREFIX):
+        """Does a tab whose websocket path is ``path`` hold the token? (Counted; a wrong token is logged.)"""
+        if not path or not path.startswith(PATH_PREFIX):
+            self.counters["viewer_tabs"] += 1
             return False
-        return hmac.compare_digest(path[len(PATH_PREFIX):].split("?")[0].encode(), self.token.encode())
+        if self.token and hmac.compare_digest(path[len(PATH_PREFIX):].split("?")[0].encode(), self.token.encode()):
+            self.counters["operator_tabs"] += 1
+            return True
+        self.counters["wrong_tokens"] += 1
+        log.warning("a tab came with a wrong operator token: read-only (%d so far)", self.counters["wrong_tokens"])
+        return False
 
     def allowed(self, client_id: int | None) -> bool:
         ok = client_id in self.panels
         if not ok:
-            self.refused += 1
+            self.counters["refused_controls"] += 1
             log.warning("control refused: tab %s is not an operator", client_id)
         return ok
 

@@ -69,6 +69,7 @@ def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_th
         assert _wait(lambda: sent == [("outlier_burst", {"agent": -1, "ticks": 20, "magnitude": 5.0})]), sent
         op.close()
         assert _wait(lambda: ui.operators.panels == {})           # its controls go with its tab
+        assert ui.operators.counters == {"viewer_tabs": 1, "wrong_tokens": 1, "operator_tabs": 1}
     finally:
         for ws in socks:
             ws.close()
@@ -78,10 +79,12 @@ def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_th
 def test_a_replay_or_tokenless_page_has_no_operator():
     ops = Operators(None)
     assert not ops.is_operator("/operator/") and not ops.is_operator("/operator/x")
+    assert ops.counters["wrong_tokens"] == 2
     ops = Operators("tok")
     assert ops.is_operator("/operator/tok") and not ops.is_operator("/operator/tok2")
     assert not ops.is_operator("/tok") and not ops.is_operator(None)
     assert not ops.allowed(7) and ops.refused == 1
+    assert ops.counters == {"operator_tabs": 1, "wrong_tokens": 1, "viewer_tabs": 2, "refused_controls": 1}
 
 
 def test_token_file_is_private_and_the_link_carries_the_token(tmp_path):
