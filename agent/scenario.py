@@ -39,7 +39,8 @@ from .estimators.registry import names as estimator_names
 from .estimators.registry import spec_of
 from .estimators.spec import NoParams
 from .models import double_integrator
-from .schema import Matrices, Matrix, Pairs, ScenarioError, Vector, build_table, check_covariance, check_shape
+from .schema import (LIMITS, Matrices, Matrix, Pairs, ScenarioError, Vector, build_table, check_covariance,
+                     check_shape)
 from .seeding import rng_for
 from .suggest import did_you_mean
 
@@ -328,12 +329,18 @@ def validate(sc: Scenario) -> Scenario:
 
 def _check_run(sc: Scenario) -> None:
     src, r = sc.source, sc.run
-    if r.ticks < 1:
-        raise ScenarioError(src, "run.ticks", f"must be ≥ 1, got {r.ticks}")
-    if not r.T > 0:
-        raise ScenarioError(src, "run.T", f"sample time must be > 0, got {r.T}")
+    if not 1 <= r.ticks <= LIMITS["ticks"]:
+        raise ScenarioError(src, "run.ticks", f"must be in [1, {LIMITS['ticks']:.0e}], got {r.ticks}",
+                            "or give run.duration (s)")
+    if not r.T >= LIMITS["T_min"] or not math.isfinite(r.T):
+        raise ScenarioError(src, "run.T", f"sample time must be ≥ {LIMITS['T_min']:g} s, got {r.T}",
+                            "T is the tick in seconds, e.g. T = 0.1")
     if not r.speed > 0:
         raise ScenarioError(src, "run.speed", f"realtime factor must be > 0, got {r.speed}", "e.g. speed = 1.0")
+    if r.mode == "realtime" and r.T / r.speed < LIMITS["realtime_tick_min"]:
+        raise ScenarioError(src, "run.T", f"a realtime tick of T / speed = {r.T / r.speed:g} s is shorter than "
+                            f"{LIMITS['realtime_tick_min'] * 1e3:g} ms, which no process keeps",
+                            "raise T, lower run.speed, or run in lockstep")
 
 
 def _check_target(sc: Scenario) -> None:
@@ -400,8 +407,9 @@ def _check_measurements(sc: Scenario) -> None:
 
 def _check_sensors(sc: Scenario) -> None:
     src, s, t = sc.source, sc.sensors, sc.target
-    if s.n < 1:
-        raise ScenarioError(src, "sensors.n", f"need at least one sensor, got {s.n}")
+    if not 1 <= s.n <= LIMITS["sensors"]:
+        raise ScenarioError(src, "sensors.n", f"need 1 … {LIMITS['sensors']} sensors, got {s.n}",
+                            "the runtime starts one OS process per sensor")
     _check_measurements(sc)
     if s.positions is not None:
         check_shape(src, "sensors.positions", s.positions, (s.n, np.shape(s.positions)[1]), "n rows")
@@ -459,6 +467,7 @@ def _check_topology(sc: Scenario) -> None:
     if tp.kind == "range":
         if not tp.range > 0:
             raise ScenarioError(src, "topology.range", f"must be > 0, got {tp.range}")
+        _check_ever_linked(sc)
         return
     if not tp.graphs:
         raise ScenarioError(src, "topology.graphs", "a schedule needs at least one [[topology.graphs]]")
@@ -470,6 +479,21 @@ def _check_topology(sc: Scenario) -> None:
         raise ScenarioError(src, "topology.graphs", "no graph of the schedule lets any sensor see the target "
                             "(every b is 0), so no estimator can track it",
                             "give at least one sensor b > 0 in some graph")
+
+
+def _check_ever_linked(sc: Scenario) -> None:
+    """Static sensors none of which is within range of another are never linked: no consensus, no flock —
+    refused (flocking sensors close in, so their start proves nothing)."""
+    s, r = sc.sensors, sc.topology.range
+    if s.n < 2 or s.motion != "static" or not math.isfinite(r) or sc.uav is not None:
+        return
+    P = sc.initial_positions()
+    d = np.sqrt(((P[:, None, :] - P[None, :, :]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    if d.min() > r:
+        raise ScenarioError(sc.source, "topology.range", f"no two of the {s.n} static sensors are ever linked: "
+                            f"the closest two are {d.min():.4g} apart, the range is {r:g}",
+                            f"raise topology.range above {d.min():.4g} or place the sensors closer")
 
 
 def _check_faults(sc: Scenario) -> None:
@@ -611,6 +635,10 @@ def parse_scenario(data: Mapping[str, Any], source: str = "<scenario>") -> Scena
 
 def _read_toml(path: Path) -> dict:
     try:
+        size = path.stat().st_size
+        if size > LIMITS["file_bytes"]:   # not parsed at all: TOML of a 10⁴ × 10⁴ matrix is ~0.5 GB
+            raise ScenarioError(str(path), "-", f"is {size / 2**20:.0f} MiB; a scenario is at most "
+                                f"{LIMITS['file_bytes'] // 2**20} MiB", "is this the right file?")
         text = path.read_text()
     except OSError as exc:
         raise ScenarioError(str(path), "-", f"cannot read the file ({exc.strerror})", "check the path") from None

@@ -20,6 +20,18 @@ import numpy as np
 
 from .suggest import did_you_mean
 
+#: Limits on what a scenario may ask for — refused with the file/key/fix error while the file is read, before
+#: anything is built or any process starts (a 10⁴ × 10⁴ matrix is refused at its first row, not parsed).
+LIMITS = {
+    "list_len": 4096,      #: entries of any list (a vector, a matrix's rows) — the wire's MAX_LIST_LEN
+    "matrix_cols": 64,     #: columns of any matrix: state, measurement and noise dimensions are ≤ 64
+    "sensors": 1000,       #: sensors.n (one OS process each over Zenoh)
+    "ticks": 10**8,        #: run.ticks
+    "T_min": 1e-6,         #: run.T (s): the model's sample time
+    "realtime_tick_min": 1e-3,   #: run.T / run.speed (s) in realtime: no process keeps a faster clock
+    "file_bytes": 16 * 2**20,    #: a scenario file (refused unread beyond)
+}
+
 Matrix = list[list[float]]
 Vector = list[float]
 Matrices = list[list[list[float]]]   #: one matrix per sensor (or per edge)
@@ -90,9 +102,22 @@ def _choice(value: Any, tp: Any, bad: ScenarioError, src: str, key: str) -> Any:
     raise bad
 
 
+def _short(value: Any) -> str:
+    """A value for an error message: its repr, cut short (a huge list is not printed whole)."""
+    import reprlib
+
+    r = reprlib.Repr()
+    r.maxlist, r.maxstring, r.maxother, r.maxlevel = 6, 60, 60, 3
+    return r.repr(value)
+
+
 def _matrix(value: Any, bad: ScenarioError, src: str, key: str) -> Matrix:
     if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
         raise bad
+    cols = max(len(r) for r in value)
+    if cols > LIMITS["matrix_cols"]:
+        raise ScenarioError(src, key, f"{cols} columns; at most {LIMITS['matrix_cols']} are accepted (state, "
+                            "measurement and noise dimensions)", "give a smaller model")
     rows = [coerce(r, Vector, src, f"{key}[{i}]") for i, r in enumerate(value)]
     if len({len(r) for r in rows}) != 1 or not rows[0]:
         raise ScenarioError(src, key, "matrix rows have different lengths", "give every row the same length")
@@ -123,7 +148,10 @@ def coerce(value: Any, tp: Any, src: str, key: str) -> Any:
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin in (types.UnionType, typing.Union):
         return _union(value, args, src, key)
-    bad = ScenarioError(src, key, f"expected {describe(tp)}, got {value!r}", f"write {key} as {describe(tp)}")
+    bad = ScenarioError(src, key, f"expected {describe(tp)}, got {_short(value)}", f"write {key} as {describe(tp)}")
+    if isinstance(value, list) and len(value) > LIMITS["list_len"]:
+        raise ScenarioError(src, key, f"{len(value)} entries; at most {LIMITS['list_len']} are accepted",
+                            "a scenario's vectors and matrices are small (see agent/schema.py LIMITS)")
     if tp in (float, int, str, bool):
         return _scalar(value, tp, bad)
     if origin is Literal:

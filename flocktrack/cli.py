@@ -79,6 +79,14 @@ def cmd_run(args) -> int:
         summary, info = run_inproc_to_dir(sc, data, out, record=args.record, show_progress=True)
         report(summary, info)
         return 0
+    from .runs import port_in_use
+
+    for port, flag in ((args.port, "--port"), (args.dashboard_port if args.dashboard else None, "--dashboard-port")):
+        holder = port_in_use(port) if port else None
+        if holder:
+            print(f"error: port {port} is in use by {holder}; give {flag} with a free port (or stop it: "
+                  f"`flocktrack ps` lists the runs)", file=sys.stderr)
+            return 2
     if args.dashboard:
         print(f"dashboard: http{'s' if args.secure else ''}://localhost:{args.dashboard_port}", file=sys.stderr)
     summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,

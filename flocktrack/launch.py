@@ -285,7 +285,7 @@ class Launcher:
         config = self.keys.client("dashboard") if self.keys is not None else None
         try:
             register(LocalRun(self.run, self.endpoint, self.mode, self.n, str(self.run_dir.resolve()), os.getpid(),
-                              time.time(), str(config) if config else None))
+                              time.time(), str(config) if config else None, self.dashboard_port))
             self._registered = True
         except OSError as exc:
             print(f"warning: run not listed for `flocktrack ps` ({exc})", file=sys.stderr)

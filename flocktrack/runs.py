@@ -30,6 +30,25 @@ class LocalRun:
     pid: int                  #: the launcher's process
     started: float            #: time.time() at start
     config: str | None = None  #: a client config with the rights of ``flocktrack fault`` (secure runs)
+    dashboard_port: int | None = None
+
+
+def port_in_use(port: int) -> str | None:
+    """None if ``port`` is free on 127.0.0.1, else what holds it (a local run, as far as we know)."""
+    import socket
+
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", int(port)))
+            return None
+        except OSError:
+            pass
+    for e in local_runs():
+        if e.dashboard_port == port or e.endpoint.rsplit(":", 1)[-1] == str(port):
+            what = "dashboard" if e.dashboard_port == port else "router"
+            return f"the {what} of run {e.run} ({e.out}, launcher pid {e.pid})"
+    return "another program"
 
 
 def runtime_dir() -> Path:
