@@ -12,6 +12,7 @@
     flocktrack keys SCENARIO --out DIR            (then: flocktrack run … --secure --keys DIR)
     flocktrack sweep SCENARIO --grid KEY=V1,V2 ... --seeds S --out DIR
     flocktrack metrics RECORDING --out DIR
+    flocktrack recover RECORDING [--out FILE]
     flocktrack replay RECORDING [--connect ENDPOINT] [--speed X]
 """
 
@@ -62,7 +63,14 @@ def cmd_run(args) -> int:
     data = scenario_data(args.scenario, args.set or [], **named)
     sc = parse_scenario(data, args.scenario)
     out = Path(args.out) if args.out else default_out(args.scenario)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / ".writable").touch()
+        (out / ".writable").unlink()
+    except OSError as exc:
+        print(f"error: cannot write the results to {out}: {exc.strerror or exc}; give --out a directory you "
+              f"can write", file=sys.stderr)
+        return 2
     from .run import run_inproc_to_dir, run_zenoh_to_dir
 
     def report(summary: dict, info: dict) -> None:
@@ -162,6 +170,21 @@ def cmd_ps(args) -> int:
         print(table(runs))
     else:
         print("no runs" + (f" on {args.connect}" if args.connect else " (no local launcher is running one)"))
+    return 0
+
+
+def cmd_recover(args) -> int:
+    """A complete MCAP file from one whose end is missing (flocktrack/record.py ``recover``)."""
+    from .record import recover
+
+    try:
+        dst, rec = recover(args.recording, args.out)
+    except OSError as exc:
+        print(f"error: {args.recording}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    state = "was complete already" if rec.complete else "had no summary (a crash): salvaged its complete chunks"
+    print(f"{args.recording} {state}; {len(rec.messages)} messages, "
+          f"{len({k for k, _m, _t in rec.messages})} keys → {dst}")
     return 0
 
 
@@ -273,6 +296,10 @@ def main(argv: list[str] | None = None) -> int:
     ps.add_argument("--run", help="only this run (a secure router answers a client about its own run only)")
     ps.add_argument("--json", action="store_true", help="as JSON")
     ps.set_defaults(fn=cmd_ps)
+    rc = sub.add_parser("recover", help="rewrite a recording cut short by a crash as a complete MCAP file")
+    rc.add_argument("recording")
+    rc.add_argument("--out", help="the new file (default: NAME.recovered.mcap beside it)")
+    rc.set_defaults(fn=cmd_recover)
     lg = sub.add_parser("logs", help="the per-process logs of a run; -f follows them")
     lg.add_argument("run", nargs="?", help="run directory or local run name (default: the only local run)")
     lg.add_argument("member", nargs="?", help="one process, e.g. agent/3, world, recorder")

@@ -26,6 +26,9 @@ from agent import wire
 log = logging.getLogger(__name__)
 
 CHUNK_BYTES = 64 * 1024
+#: a chunk open longer than this is closed and written out: a crash (kill -9 of the recorder or of its
+#: launcher) loses at most the last FLUSH_S of messages (tests/test_recording_crash.py)
+FLUSH_S = 0.5
 
 
 class McapRecorder:
@@ -45,8 +48,10 @@ class McapRecorder:
         self.counts: Counter = Counter()
         self.dropped: Counter = Counter()
         self._finished = False
+        self._open_since: float | None = None   # when the chunk in progress got its first message
         if metadata:
             self._w.add_metadata("flocktrack", {k: str(v) for k, v in metadata.items()})
+        self._f.flush()
 
     def write_raw(self, key: str, data: bytes, t_ns: int | None = None) -> None:
         """Validate and record one wire message (invalid ones are counted, not recorded)."""
@@ -67,14 +72,43 @@ class McapRecorder:
                             sequence=self.seq)
         self.seq += 1
         self.counts[key] += 1
-        self._f.flush()  # a completed chunk reaches the OS at once: a crash loses only the open chunk
+        if self._open_since is None:
+            self._open_since = time.monotonic()
+        self.tick()
+
+    def tick(self) -> None:
+        """Close the chunk in progress once it is FLUSH_S old (also called when no message comes): what is
+        recorded reaches the OS within FLUSH_S. Chunks still fill to CHUNK_BYTES at high rates."""
+        if self._open_since is not None and time.monotonic() - self._open_since >= FLUSH_S:
+            self._w.flush()
+            self._open_since = None
 
     def finish(self) -> None:
         if self._finished:
             return
         self._finished = True
-        self._w.finish()
-        self._f.close()
+        try:
+            self._w.finish()
+        finally:
+            self._f.close()
+
+
+def recover(path: str | Path, out: str | Path | None = None) -> tuple[Path, Recording]:
+    """Rewrite a recording whose end is missing (the recorder or its launcher killed, the disk full) as a
+    complete MCAP file — summary, index and footer — that any MCAP reader (Foxglove, ``mcap`` tools) opens:
+    every message of its complete chunks, with its metadata, times and sequence numbers. Returns the new
+    file's path (default ``NAME.recovered.mcap`` beside it) and what was salvaged."""
+    path = Path(path)
+    rec = read_recording(path)
+    dst = Path(out) if out is not None else path.with_name(path.stem + ".recovered.mcap")
+    w = McapRecorder(dst, rec.metadata)
+    try:
+        for seq, (key, msg, t) in enumerate(rec.messages):
+            w.seq = seq
+            w.write(key, msg, t)
+    finally:
+        w.finish()
+    return dst, rec
 
 
 @dataclass
@@ -194,13 +228,27 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     meta = json.loads(Path(args.meta).read_text()) if args.meta else {}
     stop = StopFlag().install()
-    rec = McapRecorder(args.out, meta)
+    try:
+        rec = McapRecorder(args.out, meta)
+    except OSError as exc:
+        print(f"error: cannot record to {args.out}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     bus = ZenohBus(args.run, connect=args.connect, config_file=args.config)
     end_at: list[float] = []
     roles_up: set[str] = set()
 
+    failed: list[str] = []
+
     def on_raw(key: str, data: bytes) -> None:
-        rec.write_raw(key, data)
+        if failed:
+            return
+        try:
+            rec.write_raw(key, data)
+        except OSError as exc:   # a full disk, a vanished directory: stop cleanly with what is written
+            failed.append(exc.strerror or str(exc))
+            log.error("writing %s failed (%s): the recording stops at %d messages; `flocktrack recover %s` "
+                      "makes a complete file of them", args.out, failed[0], rec.seq, args.out)
+            return
         if key == "world/end" and not end_at:
             end_at.append(time.monotonic())
 
@@ -221,14 +269,21 @@ def main(argv: list[str] | None = None) -> int:
         bus.subscribe_raw("**", on_raw)
         bus.watch_members(on_member)
         bus.declare_token("recorder/0")
-        while not stop.set and not over():
+        while not stop.set and not over() and not failed:
             bus.poll(0.05)
+            try:
+                rec.tick()
+            except OSError as exc:
+                failed.append(exc.strerror or str(exc))
         bus.poll(0)  # whatever is already queued
 
     try:
         profiled("recorder/0", loop)
     finally:
-        rec.finish()
+        try:
+            rec.finish()
+        except OSError as exc:
+            failed.append(exc.strerror or str(exc))
         bus.close()
     log.info("recorded %d messages on %d keys to %s (dropped %s)", rec.seq, len(rec.counts), args.out,
              dict(rec.dropped))
@@ -237,9 +292,9 @@ def main(argv: list[str] | None = None) -> int:
     if os.environ.get("FLOCKTRACK_STATS_DIR"):
         p = Path(os.environ["FLOCKTRACK_STATS_DIR"]) / "recorder_0.json"
         p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps({"recorded_by_key": dict(sorted(rec.counts.items())), "dropped": dict(rec.dropped)},
-                                indent=1))
-    return 0
+        p.write_text(json.dumps({"recorded_by_key": dict(sorted(rec.counts.items())), "dropped": dict(rec.dropped),
+                                 "write_failed": failed[0] if failed else None}, indent=1))
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

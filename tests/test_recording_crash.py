@@ -1,0 +1,70 @@
+"""What a crash leaves of a recording: ``kill -9`` of a run's launcher (its children, the recorder among them,
+die with it) mid-run leaves an MCAP file that ``flocktrack metrics`` reads, missing at most the last second
+(the recorder closes a chunk once it is FLUSH_S old), and ``flocktrack recover`` rewrites it as a complete
+file that a strict MCAP reader (summary, index, footer) opens."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from flocktrack.cli import main
+from flocktrack.record import FLUSH_S, read_recording
+
+from conftest import ROOT
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_launcher_leaves_a_readable_recording_short_of_at_most_a_second(tmp_path, capsys):
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "flocktrack", "run", "scenarios/gu_hu_normal.toml", "--mode",
+                             "realtime", "--ticks", "100000", "--quiet", "--out", str(out)], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    rec_file = out / "recording.mcap"
+    end = time.monotonic() + 120
+    while time.monotonic() < end and not (rec_file.exists() and rec_file.stat().st_size > 300_000):
+        time.sleep(0.2)
+    assert rec_file.exists(), "the run never got going"
+    time.sleep(2.0)                       # a steady stream: ticks every 0.1 s
+    t_kill = time.time_ns()
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(30)
+    time.sleep(2.0)                       # its children are gone with it (PR_SET_PDEATHSIG)
+
+    rec = read_recording(rec_file)
+    assert not rec.complete and len(rec.messages) > 100
+    last = max(t for _k, _m, t in rec.messages)
+    lost_s = (t_kill - last) / 1e9
+    assert lost_s < 1.0, f"the last recorded message is {lost_s:.2f} s older than the kill (FLUSH_S = {FLUSH_S})"
+    ticks = sorted(m.k for k, m, _t in rec.messages if k == "world/tick")
+    assert ticks == list(range(len(ticks)))          # what is there has no hole
+
+    # flocktrack metrics reads the truncated file as it is ...
+    assert main(["metrics", str(rec_file), "--out", str(tmp_path / "m1")]) == 0
+    # ... and flocktrack recover makes a complete file of it
+    assert main(["recover", str(rec_file)]) == 0
+    assert "had no summary (a crash)" in capsys.readouterr().out
+    fixed = out / "recording.recovered.mcap"
+    from mcap.reader import make_reader
+
+    with open(fixed, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count == len(rec.messages)
+        assert sum(1 for _ in reader.iter_messages()) == len(rec.messages)
+    again = read_recording(fixed)
+    assert again.complete and again.metadata == rec.metadata
+    assert [(k, t) for k, _m, t in again.messages] == [(k, t) for k, _m, t in rec.messages]
+    assert main(["metrics", str(fixed), "--out", str(tmp_path / "m2")]) == 0
+    s1, s2 = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("m1", "m2"))
+    assert s1 == s2 and s1["ticks_seen"] >= 20
+
+
+def test_an_output_directory_that_cannot_be_written_is_said_at_start(tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    assert main(["run", str(ROOT / "scenarios" / "demo.toml"), "--ticks", "3", "--out", str(blocker / "run")]) == 2
+    assert f"cannot write the results to {blocker / 'run'}" in capsys.readouterr().err
