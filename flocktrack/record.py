@@ -212,7 +212,7 @@ _NOT_ROLES = frozenset({"recorder", "launcher", "dashboard"})
 
 def main(argv: list[str] | None = None) -> int:
     from agent.bus import ZenohBus
-    from agent.runner import StopFlag, profiled
+    from agent.runner import StopFlag, profiled, quick_gil_handoff
 
     ap = argparse.ArgumentParser(prog="python -m flocktrack.record")
     ap.add_argument("--run", required=True)
@@ -228,6 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     meta = json.loads(Path(args.meta).read_text()) if args.meta else {}
     stop = StopFlag().install()
+    quick_gil_handoff()
     try:
         rec = McapRecorder(args.out, meta)
     except OSError as exc:
