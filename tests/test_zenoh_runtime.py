@@ -136,15 +136,17 @@ def test_kill_9_a_sensor_mid_run_restart_and_rejoin(tmp_path, mode, scen, ticks)
         elif key == "world/tick":
             alive_flag[msg.k] = msg.alive[victim]
     missing = sorted(set(range(ticks)) - est[victim])
-    early = [k for k in missing if k < hook.killed_at]   # realtime on a loaded machine: a few ticks coasted
-    assert len(early) <= (3 if mode == "realtime" else 0), (early, hook.killed_at)
+    # realtime on a loaded machine: a sensor behind the clock coasts through a few ticks (≤ 5 % of them)
+    slack = ticks // 20 if mode == "realtime" else 0
+    early = [k for k in missing if k < hook.killed_at]
+    assert len(early) <= slack, (early, hook.killed_at)
     assert missing and missing[-1] >= hook.killed_at, (missing[:5], hook.killed_at)  # a gap after the kill ...
     assert max(est[victim]) == ticks - 1                                            # ... and it rejoined
     assert any(not a for a in alive_flag.values()) and alive_flag[ticks - 1]        # the world saw it leave and return
     for i in range(sc.sensors.n):                                                   # the others kept estimating
         if i != victim:
             n_missing = len(set(range(ticks)) - est[i])
-            assert n_missing <= (3 if mode == "realtime" else 0), (i, n_missing)
+            assert n_missing <= slack, (i, n_missing)
     # the rejoined node re-initialised from its neighbours: its error is small right after rejoining
     rows = {int(r["k"]): r for r in __import__("csv").DictReader(open(tmp_path / "metrics.csv"))}
     back = min(k for k in est[victim] if k > missing[-1])
