@@ -104,3 +104,33 @@ def test_fault_ps_and_logs_on_two_live_runs(tmp_path, monkeypatch, capsys):
     keys = {k for k, _m, _t in read_recording(tmp_path / "a" / "recording.mcap").messages if k.startswith("control/")}
     assert keys == {"control/partition", "control/link_loss", "control/inject", "control/heal_fault", "control/kill",
                     "control/restart"}, keys
+
+
+def test_logs_follow_a_growing_log_until_the_run_is_over(tmp_path):
+    """``flocktrack logs DIR -f``: every process's lines tagged with its name, the ones appended while it
+    follows included, a partial line only once complete; it returns once the run is over and quiet."""
+    import io
+    import threading
+
+    from flocktrack.logs import show
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "agent_3.log").write_text("INFO one\n")
+    (logs / "world.log").write_text("INFO w\n")
+    out, running = io.StringIO(), [True]
+    th = threading.Thread(target=show, args=(tmp_path, None, True, out), kwargs={"still_running": lambda: running[0],
+                                                                                  "poll_s": 0.05})
+    th.start()
+    time.sleep(0.3)
+    with open(logs / "agent_3.log", "a") as f:
+        f.write("INFO two\nINFO thr")
+        f.flush()
+        time.sleep(0.3)
+        f.write("ee\n")
+    time.sleep(0.3)
+    running[0] = False
+    th.join(10)
+    assert not th.is_alive()
+    assert out.getvalue().splitlines() == ["[agent/3] INFO one", "[world] INFO w", "[agent/3] INFO two",
+                                           "[agent/3] INFO three"]
