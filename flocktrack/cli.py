@@ -27,6 +27,23 @@ from agent.estimators.registry import specs
 from agent.scenario import ScenarioError, load_scenario, parse_scenario, scenario_data
 
 
+class _Lazy:
+    """Choices looked up when a value is checked: the registry imports every estimator (SciPy, …), which
+    `flocktrack fault / ps / logs` need not wait for."""
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    def __contains__(self, x) -> bool:
+        return x in self.fn()
+
+    def __iter__(self):
+        return iter(self.fn())
+
+    def __len__(self) -> int:
+        return len(self.fn())
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with "did you mean …?" for a misspelt sub-command or choice."""
 
@@ -269,7 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--keys", help="key set directory for --secure (default: OUT/keys)")
     r.add_argument("--ticks", type=int)
     r.add_argument("--seed", type=int)
-    r.add_argument("--estimator", choices=estimator_names())
+    r.add_argument("--estimator", choices=_Lazy(estimator_names), metavar="NAME",
+                   help="a registered estimator (overrides estimator.name)")
     r.add_argument("--rounds", type=int)
     r.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
     r.add_argument("--out", help="output directory (default: runs/<scenario>-<YYYYmmdd-HHMMSS>)")

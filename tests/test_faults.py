@@ -306,7 +306,8 @@ def test_delay_in_ms_in_realtime_and_live_injection_over_zenoh(tmp_path):
 
     plan = [{"kind": "delay", "targets": "agents:2", "direction": "in", "delay_ms": 400.0, "jitter_ms": 100.0,
              "start": 20, "heal": 50}]
-    data, sc = _scenario("gu_hu_normal.toml", plan, **{"run.ticks": 130, "run.mode": "realtime", "run.speed": 0.25})
+    # 200 ticks: the CLI process that injects may take ~12 s (75 ticks) to start on a loaded machine
+    data, sc = _scenario("gu_hu_normal.toml", plan, **{"run.ticks": 200, "run.mode": "realtime", "run.speed": 0.25})
     st = {"bus": None, "k": -1, "sent": set(), "injected": None}
 
     def on_event(key, m):
@@ -328,6 +329,7 @@ def test_delay_in_ms_in_realtime_and_live_injection_over_zenoh(tmp_path):
         # heal it once the world has acknowledged it and it has run 15 ticks (a CLI process starting on a
         # loaded machine may take many ticks to get its message out: a heal sent before would be refused)
         if st["injected"] is not None and st["k"] >= st["injected"] + 15 and "heal" not in st["sent"]:
+            assert st["bus"].await_subscriber("control/heal_fault", 10.0)   # (a put before the routes is dropped)
             st["bus"].publish("control/heal_fault", Control(verb="heal_fault", args={"id": LIVE_ID0}))
             st["sent"].add("heal")
         time.sleep(0.005)
@@ -339,7 +341,7 @@ def test_delay_in_ms_in_realtime_and_live_injection_over_zenoh(tmp_path):
             st["bus"].close()
     assert info["rc"] == 0
     out, _ = st["cli"].communicate(timeout=60)
-    assert st["cli"].returncode == 0, out
+    assert st["cli"].returncode == 0 and "applied: inject at tick" in out, out
     rec = read_recording(tmp_path / "recording.mcap")
     fault = {(m.args["id"], m.args["phase"]): m.k for key, m, _ in rec.messages
              if key == "world/event" and m.verb == "fault"}
