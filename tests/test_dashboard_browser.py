@@ -295,11 +295,16 @@ def test_fault_buttons_publish_controls_with_effect_in_the_recording(session):
     est_k = [m.k for key, m, _ in rec.messages if key == f"agent/{VICTIM}/estimate"]
     last_tick = max(ticks)
     assert est_k and max(est_k) < last_tick - 10
-    # it estimated until shortly before the kill: its last estimate was recorded at most 3 s before the kill
-    # command (by time: in realtime on a loaded machine a sensor may work ticks behind the world's clock)
+    # it estimated until the kill, as far as the rest of the flock had got: its last estimate before the kill
+    # is within 10 ticks of the others' (in realtime on a loaded machine the whole flock may work ticks
+    # behind the world's clock, and the page paused the run before it clicked)
     t_kill = next(t for key, m, t in rec.messages if key == "control/kill")
-    t_last = max(t for key, m, t in rec.messages if key == f"agent/{VICTIM}/estimate")
-    assert t_last >= t_kill - 3e9, (t_kill - t_last) / 1e9
+    got: dict[int, int] = {}
+    for key, m, t in rec.messages:
+        if t < t_kill and key.startswith("agent/") and key.endswith("/estimate"):
+            got[m.src] = max(got.get(m.src, -1), m.k)
+    others = sorted(k for i, k in got.items() if i != VICTIM)
+    assert got.get(VICTIM, -1) >= others[len(others) // 2] - 10, (got, kills[0].k)
     dead = [k for k in ticks if not ticks[k].alive[VICTIM]]
     assert dead and min(dead) > kills[0].k and all(not ticks[k].alive[VICTIM] for k in range(min(dead), last_tick + 1))
     assert all(ticks[k].links[VICTIM] == [] for k in dead)
