@@ -54,7 +54,7 @@ def quick_gil_handoff() -> None:
     """Zenoh's receiving thread needs the GIL for every sample (the bus's callbacks run on it, to keep the
     order of arrival): with the default 5 ms switch interval a role computing an update holds it off for up
     to 5 ms per sample. 1 ms, measured with a busy thread and 100-sample bursts (direct callbacks): p95
-    latency 54 → 16 ms, max 130 → 24 ms. (The dashboard does the same, dashboards/live.py run_live.)"""
+    latency 54 → 16 ms, max 130 → 24 ms. (The dashboard's process too: dashboards/live.py run_live.)"""
     import sys
 
     sys.setswitchinterval(0.001)

@@ -372,6 +372,13 @@ CONTROL_VERBS = ("pause", "resume", "step", "speed", "link_drop", "link_heal", "
                  "inject", "heal_fault", "kill", "restart", "outlier_burst")
 
 
+def request_id(args: dict[str, Any]) -> dict[str, str]:
+    """``{"req": …}`` of a control's args, for its answer (``flocktrack fault`` waits for the answer that
+    echoes its request id); ``{}`` when the sender gave none."""
+    req = args.get("req")
+    return {"req": req[:64]} if isinstance(req, str) else {}
+
+
 def control_args(items: list[str] | str) -> dict[str, Any]:
     """``name=value`` words (a list, or one space-separated string) → Control args; values are read as TOML
     (``80`` → int, ``0.3`` → float, ``[1, 2]`` → list, ``true``), anything else stays a string

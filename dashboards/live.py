@@ -20,7 +20,6 @@ import json
 import logging
 import math
 import queue
-import sys
 import threading
 import time
 from collections import deque
@@ -883,14 +882,13 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
     """``token``: this process's liveliness token; ``operator_token``: the run's operator token (None: a
     read-only page for everyone, see dashboards/operator.py)."""
     from agent.bus import ZenohBus
-    from agent.runner import write_stats
-
+    from agent.runner import quick_gil_handoff, write_stats
 
     stop_event = stop_event or threading.Event()
     # Zenoh's receive thread needs the GIL for every sample; with the default 5 ms switch interval a busy
     # loop thread lets through ~200 samples/s and the backlog backs up to the publishers (measured with
     # bench/bench_dashboard.py: 100 sensors, 6 000 msg/s). 1 ms keeps the callbacks flowing.
-    sys.setswitchinterval(0.001)
+    quick_gil_handoff()
     bus = ZenohBus(run, connect=connect, config_file=config_file)
     state = DashboardState(info)
     loop = LiveDashboard(state, None, bus)

@@ -23,8 +23,8 @@ import os
 import secrets
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 from agent import wire
 
@@ -63,18 +63,8 @@ def websocket_path(server, client_id: int) -> str | None:
         return None
 
 
-@dataclass
-class OperatorPanel:
-    """One operator tab's control widgets (its own GUI)."""
-
-    client_id: int | None
-    handles: dict = field(default_factory=dict)
-
-    def __getattr__(self, name: str):
-        try:
-            return self.__dict__["handles"][name]
-        except KeyError:
-            raise AttributeError(name) from None
+class OperatorPanel(SimpleNamespace):
+    """One operator tab's control widgets (its own GUI), as attributes: ``client_id``, ``g_kill_id``, …"""
 
 
 class Operators:
@@ -117,7 +107,7 @@ class Operators:
 def build_panel(gui, client_id: int | None, ui, orders: dict[str, float]) -> OperatorPanel:
     """The operator widgets on ``gui`` (a tab's own, or the server's in tests): run control at
     ``orders["run"]``, faults at ``orders["faults"]`` and the plan-fault form at ``orders["plan"]``."""
-    p = OperatorPanel(client_id)
+    p = OperatorPanel(client_id=client_id)
     ctl = _checked(ui, client_id)
     _run_control(gui, p, ui, ctl, orders["run"])
     _faults(gui, p, ui, ctl, orders["faults"])
@@ -134,13 +124,12 @@ def _checked(ui, client_id: int | None) -> Callable[..., None]:
 
 def _run_control(gui, p: OperatorPanel, ui, control, order: float) -> None:
     """Pause / resume / step n ticks, and the realtime factor (control/pause, resume, step, speed)."""
-    h = p.handles
     with gui.add_folder("Run control", order=order):
         gui.add_markdown("**operator**: this tab steers the run")
         bg = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
-        h["g_step_n"] = gui.add_number("Step ticks", 1, min=1, max=10_000, step=1)
-        h["g_speed"] = gui.add_slider("Speed ×", 0.05, 4.0, 0.05, min(4.0, max(0.05, round(ui.info.speed, 2))),
-                                      hint="realtime factor (control/speed)")
+        p.g_step_n = gui.add_number("Step ticks", 1, min=1, max=10_000, step=1)
+        p.g_speed = gui.add_slider("Speed ×", 0.05, 4.0, 0.05, min(4.0, max(0.05, round(ui.info.speed, 2))),
+                                   hint="realtime factor (control/speed)")
 
     @bg.on_click
     def _(event) -> None:
@@ -159,23 +148,22 @@ def _run_control(gui, p: OperatorPanel, ui, control, order: float) -> None:
 def _faults(gui, p: OperatorPanel, ui, control, order: float) -> None:
     """Kill / restart a sensor, drop / heal a link, link loss, partition / heal the flock, and an outlier
     burst (control/kill, restart, link_drop, link_heal, link_loss, partition, heal, outlier_burst)."""
-    h, n = p.handles, ui.info.n
+    n = ui.info.n
     top = max(n - 1, 0)
     sel = ui.selected if ui.selected is not None else 0
     with gui.add_folder("Faults (control/**)", order=order):
-        h["g_kill_id"] = gui.add_number("Sensor id", sel, min=0, max=top, step=1)
+        p.g_kill_id = gui.add_number("Sensor id", sel, min=0, max=top, step=1)
         kb = gui.add_button_group("Process", ("Kill sensor", "Restart sensor"))
-        h["g_link_a"] = gui.add_number("Link a", sel, min=0, max=top, step=1)
-        h["g_link_b"] = gui.add_number("Link b", 1 if n > 1 else 0, min=0, max=top, step=1)
+        p.g_link_a = gui.add_number("Link a", sel, min=0, max=top, step=1)
+        p.g_link_b = gui.add_number("Link b", 1 if n > 1 else 0, min=0, max=top, step=1)
         lb = gui.add_button_group("Link", ("Drop link", "Heal link"))
-        h["g_loss"] = gui.add_slider("Link loss p", 0.0, 1.0, 0.05, 0.0)
+        p.g_loss = gui.add_slider("Link loss p", 0.0, 1.0, 0.05, 0.0)
         b_loss = gui.add_button("Set link loss")
         pb = gui.add_button_group("Flock", ("Partition", "Heal all"))
-        h["g_burst_agent"] = gui.add_number("Outlier sensor (−1 = all)", -1, min=-1, max=top, step=1)
-        h["g_burst_ticks"] = gui.add_number("Outlier ticks", 20, min=1, max=100_000, step=1)
-        h["g_burst_mag"] = gui.add_number("Outlier magnitude", 5.0, min=0.0, max=1e6, step=0.5)
-        h["b_burst"] = gui.add_button("Inject outlier burst")
-    h["b_kill"] = kb
+        p.g_burst_agent = gui.add_number("Outlier sensor (−1 = all)", -1, min=-1, max=top, step=1)
+        p.g_burst_ticks = gui.add_number("Outlier ticks", 20, min=1, max=100_000, step=1)
+        p.g_burst_mag = gui.add_number("Outlier magnitude", 5.0, min=0.0, max=1e6, step=0.5)
+        p.b_burst = gui.add_button("Inject outlier burst")
 
     kb.on_click(lambda e: control("kill" if e.target.value == "Kill sensor" else "restart",
                                   agent=int(p.g_kill_id.value)))
@@ -193,14 +181,13 @@ def _plan_fault(gui, p: OperatorPanel, ui, control, order: float) -> None:
     fault by its id (control/heal_fault)."""
     from agent.scenario import FAULT_KINDS
 
-    h = p.handles
     with gui.add_folder("Plan fault (control/inject)", expand_by_default=False, order=order):
-        h["g_inj_kind"] = gui.add_dropdown("Kind", FAULT_KINDS, initial_value="delay")
-        h["g_inj_targets"] = gui.add_text("Targets", "agents:0")
-        h["g_inj_params"] = gui.add_text("Parameters", "delay_ms=80 jitter_ms=20 direction=in")
-        h["g_inj_ticks"] = gui.add_number("Ticks (0 = until healed)", 100, min=0, max=10**7, step=1)
+        p.g_inj_kind = gui.add_dropdown("Kind", FAULT_KINDS, initial_value="delay")
+        p.g_inj_targets = gui.add_text("Targets", "agents:0")
+        p.g_inj_params = gui.add_text("Parameters", "delay_ms=80 jitter_ms=20 direction=in")
+        p.g_inj_ticks = gui.add_number("Ticks (0 = until healed)", 100, min=0, max=10**7, step=1)
         b_inj = gui.add_button("Inject")
-        h["g_inj_id"] = gui.add_number("Live fault id", 1000, min=1000, max=10**6, step=1)
+        p.g_inj_id = gui.add_number("Live fault id", 1000, min=1000, max=10**6, step=1)
         b_heal_one = gui.add_button("Heal this fault")
 
     b_inj.on_click(lambda _e: inject_from_form(p, control))

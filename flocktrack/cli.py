@@ -154,10 +154,13 @@ def cmd_fault(args) -> int:
     if run is None or connect is None:
         if local is None:
             runs = local_runs()
-            print("error: " + ("no run of this machine's launchers is going; give --run and --connect" if not runs
-                               else f"{len(runs)} runs are going, say which with --run: "
-                                    + ", ".join(e.run for e in runs) if run is None
-                               else f"no local run {run!r}; give --connect for a run elsewhere"), file=sys.stderr)
+            if not runs:
+                why = "no run of this machine's launchers is going; give --run and --connect"
+            elif run is None:
+                why = f"{len(runs)} runs are going, say which with --run: {', '.join(e.run for e in runs)}"
+            else:
+                why = f"no local run {run!r}; give --connect for a run elsewhere"
+            print(f"error: {why}", file=sys.stderr)
             return fc.NO_ANSWER
         run, connect, config = local.run, connect or local.endpoint, config or local.config
     try:

@@ -155,6 +155,7 @@ class Launcher:
         self.dashboard_port = dashboard_port
         #: the dashboard's operator token (dashboards/operator.py), kept 0600 in the run directory
         self.dashboard_token = dashboard_token
+        self._registered = False             # this run is in the machine's list (flocktrack/runs.py)
         self.ctl_bus = None
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
 
@@ -326,9 +327,9 @@ class Launcher:
         """A control's outcome on ``launcher/event``: applied (``refusal`` None) or refused, and why."""
         from agent.wire import Control
 
-        args = {"agent": agent, "applied": refusal is None, "reason": (refusal or "")[:300]}
-        if isinstance(msg.args.get("req"), str):
-            args["req"] = msg.args["req"][:64]
+        from agent.wire import request_id
+
+        args = {"agent": agent, "applied": refusal is None, "reason": (refusal or "")[:300], **request_id(msg.args)}
         if self.ctl_bus is not None:
             self.ctl_bus.publish("launcher/event", Control(k=0, verb=msg.verb, args=args))  # (the launcher keeps no tick)
 
@@ -481,7 +482,7 @@ class Launcher:
                 c.proc.kill()
                 c.proc.wait()
                 self._event("killed", c.name)
-        if getattr(self, "_registered", False):
+        if self._registered:
             from .runs import unregister
 
             unregister(self.run)

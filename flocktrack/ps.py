@@ -43,6 +43,7 @@ def runs_on(endpoint: str, config_file: str | None = None, run: str | None = Non
     import zenoh
 
     from agent.bus import zenoh_config
+    from agent.wire import decode
 
     session = zenoh.open(zenoh_config(endpoint, None, "client", config_file))
     seen: dict[str, RunSeen] = {}
@@ -59,8 +60,6 @@ def runs_on(endpoint: str, config_file: str | None = None, run: str | None = Non
         def on_tick(sample) -> None:
             run = str(sample.key_expr).split("/")[1]
             try:
-                from agent.wire import decode
-
                 ticks[run] = max(ticks.get(run, -1), decode("world/tick", sample.payload.to_bytes()).k)
             except Exception:  # a bad sample tells no tick
                 pass

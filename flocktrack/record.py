@@ -101,10 +101,9 @@ def recover(path: str | Path, out: str | Path | None = None) -> tuple[Path, Reco
     path = Path(path)
     rec = read_recording(path)
     dst = Path(out) if out is not None else path.with_name(path.stem + ".recovered.mcap")
-    w = McapRecorder(dst, rec.metadata)
+    w = McapRecorder(dst, rec.metadata)   # (numbers them 0, 1, … in the order read: sequence order)
     try:
-        for seq, (key, msg, t) in enumerate(rec.messages):
-            w.seq = seq
+        for key, msg, t in rec.messages:
             w.write(key, msg, t)
     finally:
         w.finish()
@@ -240,16 +239,20 @@ def main(argv: list[str] | None = None) -> int:
 
     failed: list[str] = []
 
+    def fail(exc: OSError) -> None:
+        """A full disk, a vanished directory: the recording stops cleanly with what is written."""
+        if not failed:
+            log.error("writing %s failed (%s): the recording stops at %d messages; `flocktrack recover %s` "
+                      "makes a complete file of them", args.out, exc.strerror or exc, rec.seq, args.out)
+        failed.append(exc.strerror or str(exc))
+
     def on_raw(key: str, data: bytes) -> None:
         if failed:
             return
         try:
             rec.write_raw(key, data)
-        except OSError as exc:   # a full disk, a vanished directory: stop cleanly with what is written
-            failed.append(exc.strerror or str(exc))
-            log.error("writing %s failed (%s): the recording stops at %d messages; `flocktrack recover %s` "
-                      "makes a complete file of them", args.out, failed[0], rec.seq, args.out)
-            return
+        except OSError as exc:
+            return fail(exc)
         if key == "world/end" and not end_at:
             end_at.append(time.monotonic())
 
@@ -275,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 rec.tick()
             except OSError as exc:
-                failed.append(exc.strerror or str(exc))
+                fail(exc)
         bus.poll(0)  # whatever is already queued
 
     try:
@@ -284,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             rec.finish()
         except OSError as exc:
-            failed.append(exc.strerror or str(exc))
+            fail(exc)
         bus.close()
     log.info("recorded %d messages on %d keys to %s (dropped %s)", rec.seq, len(rec.counts), args.out,
              dict(rec.dropped))

@@ -22,12 +22,16 @@ def _connect(port: int, path: str):
 
     ws = connect(f"ws://127.0.0.1:{port}{path}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None,
                  open_timeout=30)
-    # Viser counts a tab as connected once it reports its camera
+    _report_camera(ws)
+    return ws
+
+
+def _report_camera(ws) -> None:
+    """Viser counts a tab as connected once it reports its camera."""
     ws.send(msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0],
                                     "position": [0.0, -30.0, 20.0], "fov": 1.0, "near": 0.01, "far": 1000.0,
                                     "image_height": 800, "image_width": 600, "look_at": [0.0, 0.0, 0.0],
                                     "up_direction": [0.0, 0.0, 1.0]}))
-    return ws
 
 
 def _press(ws, uuid: str) -> None:
@@ -144,10 +148,7 @@ def test_a_secure_runs_page_is_https_with_the_runs_ca_and_the_token_still_decide
         assert isinstance(e.value.reason, ssl.SSLCertVerificationError), e.value
         ws = connect(f"wss://localhost:{ui.port}/operator/tok", ssl=ctx, subprotocols=[f"viser-v{viser.__version__}"],
                      max_size=None, open_timeout=30)
-        ws.send(msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0],
-                                        "position": [0.0, -30.0, 20.0], "fov": 1.0, "near": 0.01, "far": 1000.0,
-                                        "image_height": 800, "image_width": 600, "look_at": [0.0, 0.0, 0.0],
-                                        "up_direction": [0.0, 0.0, 1.0]}))
+        _report_camera(ws)
         assert _wait(lambda: len(ui.operators.panels) == 1)
         ws.close()
     finally:

@@ -29,7 +29,7 @@ from agent.bus import Bus
 from agent.roles.common import Role
 from agent.seeding import rng_for
 from agent.wire import (Command, Control, End, HealFault, Inject, LinkEdit, LinkLoss, Message, Partition, Speed, State,
-                        Step, Tick, WireError, command, fault_event)
+                        Step, Tick, WireError, command, fault_event, request_id)
 
 from agent.scenario import FaultsCfg, Scenario, ScenarioError, parse_fault_event
 
@@ -122,9 +122,7 @@ class WorldRole(Role):
         if not self.apply_control(msg.verb, msg.args):
             if msg.verb in WORLD_VERBS:   # say why on the timeline (the dashboard shows it); others' verbs: silence
                 self.stats["rejected_controls"] = self.stats.get("rejected_controls", 0) + 1
-                why = {"verb": msg.verb, "reason": self.last_rejection[:300]}
-                if isinstance(msg.args.get("req"), str):   # flocktrack fault's request id: its answer
-                    why["req"] = msg.args["req"][:64]
+                why = {"verb": msg.verb, "reason": self.last_rejection[:300], **request_id(msg.args)}
                 self.publish("world/event", Control(k=self._next_k(), verb="rejected", args=why))
         else:
             self.stats["controls"] += 1
