@@ -41,12 +41,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
-        sc = load_scenario(args.scenario)
+        sc = load_scenario(args.scenario, **{"run.mode": args.mode})   # (None: the file's mode)
     except ScenarioError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     design = json.loads(open(args.design).read()) if args.design else {}
-    mode = args.mode or sc.run.mode
+    mode = sc.run.mode
     stop = StopFlag().install()
     if args.role == "sensor":
         if not 0 <= args.id < sc.sensors.n:

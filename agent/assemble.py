@@ -87,7 +87,7 @@ def _flock_sensor(sc: Scenario, i: int, design: dict[str, Any], rejoin: bool) ->
     meas = LinearSensor(sc.C_of(i), sc.R_of(i)) if D is None else DisturbedSensor(sc.C_of(i), D, sc.sensors.v_std)
     return SensorRole(i, sc.run.ticks, sc.run.T, est, meas,
                       rng_for(sc.run.seed, "agent", i, "measurement"), q0, None, ctrl, sc.pos_dims, rejoin,
-                      seed=sc.run.seed)
+                      seed=sc.run.seed, catch_up=sc.run.mode == "realtime")
 
 
 def _uav_target(sc: Scenario) -> TargetRole:

@@ -37,8 +37,10 @@ class SensorRole(Role):
 
     def __init__(self, i: int, ticks: int, T: float, estimator: Estimator, sensor: LinearSensor,
                  rng: np.random.Generator, q0: np.ndarray, p0: np.ndarray | None = None,
-                 controller=None, pos_dims: int = 2, rejoin: bool = False, seed: int = 0):
+                 controller=None, pos_dims: int = 2, rejoin: bool = False, seed: int = 0,
+                 catch_up: bool = False):
         super().__init__(ticks)
+        self.catch_up = bool(catch_up)   # realtime: a sensor behind the world skips to its newest tick
         self.i, self.T, self.seed, self.pos_dims = int(i), float(T), int(seed), int(pos_dims)
         self.est, self.sensor, self.rng, self.controller = estimator, sensor, rng, controller
         self.q = np.array(q0, float)
@@ -182,7 +184,20 @@ class SensorRole(Role):
     # ------------------------------------------------------------------ the tick: measure → rounds → finish
     def _try_begin(self) -> None:
         while self.r < 0 and not self.finished and self.k in self._ticks and self.k in self._truth:
+            if self.catch_up:
+                self._skip_stale()
             self._begin()
+
+    def _skip_stale(self) -> None:
+        """Realtime: ticks the world has already moved past are coasted through (predicted only, nothing
+        published), and the newest tick whose truth is here is taken up. A starved sensor would otherwise
+        work through stale ticks whose round slots and state deadline are long gone — every payload late,
+        every state dropped by the world — and never catch up; this way it loses the ticks it cannot make,
+        not all of them. (Lockstep never gets here: the world announces k+1 only after our state k.)"""
+        newest = max(kk for kk in self._ticks if kk in self._truth)
+        while self.k < newest:
+            self._predict_blind(self._ticks[self.k].n if self.k in self._ticks else self._ticks[newest].n)
+            self.counters["skipped_ticks"] += 1
 
     def _begin(self) -> None:
         tick, truth = self._ticks[self.k], self._truth[self.k]
