@@ -9,7 +9,11 @@ key                        type          published by
 ``target/truth``           Truth         the target (its true state at tick k)
 ``target/state``           State         the target (its position after tick k, i.e. for k+1)
 ``agent/<i>/meas``         Meas          sensor i (its measurement at tick k)
-``agent/<i>/xchg``         Xchg          sensor i (consensus payload of exchange round r)
+``agent/<i>/to/<j>/xchg``  Xchg          sensor i, to its out-neighbour j only (round r's consensus
+                                         payload; j subscribes once, for life, to its inbox
+                                         ``agent/*/to/<j>/xchg`` — delivery grows with degree, not N)
+``agent/<i>/xchg``         Xchg          sensor i, the same payload once more for observers (recorder,
+                                         dashboard); no sensor reads it
 ``agent/<i>/estimate``     Estimate      sensor i (x̂ₖ and x̂ₖ₊₁)
 ``agent/<i>/state``        State         sensor i (position/velocity after tick k)
 ``fusion/estimate``        Estimate      the fusion solver
@@ -635,9 +639,37 @@ _KEY_TYPES = {
 }
 
 
+#: what observers (recorder, dashboard) subscribe to: every key but the addressed copies of the
+#: exchange payloads (each payload is seen once, on ``agent/<i>/xchg``)
+OBSERVED = ("world/**", "target/**", "launcher/**", "control/**", "fusion/**", "agent/*/*")
+
+
+def xchg_key(src: int, dst: int) -> str:
+    """The key sensor ``src`` addresses an exchange payload to sensor ``dst`` on."""
+    return f"agent/{src}/to/{dst}/xchg"
+
+
+def inbox(i: int) -> str:
+    """Sensor ``i``'s inbox: the exchange payloads addressed to it (a subscription pattern)."""
+    return f"agent/*/to/{i}/xchg"
+
+
+def addressed(key: str) -> bool:
+    """Is ``key`` an addressed copy (``agent/<i>/to/<j>/xchg``), not for observers?"""
+    return key.count("/") == 4 and key.startswith("agent/")
+
+
 def expected_type(key: str) -> tuple[type[Message], int | None]:
     """Message class a relative key carries, and the agent id that owns it (None if not an agent key)."""
     parts = key.split("/")
+    if parts[0] == "agent" and len(parts) == 5 and parts[2] == "to" and parts[4] == "xchg":
+        try:
+            owner, dst = int(parts[1]), int(parts[3])
+        except ValueError:
+            raise WireError("bad_key", key) from None
+        if owner < 0 or dst < 0 or dst == owner:
+            raise WireError("bad_key", key)
+        return Xchg, owner
     if parts[0] == "agent" and len(parts) == 3:
         try:
             owner = int(parts[1])
@@ -719,7 +751,7 @@ def peek(data: bytes, names: tuple[str, ...] = ("k", "r"), max_fields: int = 6) 
 
 
 def peek_round(key: str, data: bytes) -> tuple[int, int, int] | None:
-    """(sender, k, r) of an exchange payload on ``agent/<sender>/xchg``, read without decoding it (see
+    """(sender, k, r) of an exchange payload on ``agent/<sender>/[to/<j>/]xchg``, read without decoding it (see
     :func:`peek`); None when unsure."""
     try:
         j = int(key.split("/")[1])

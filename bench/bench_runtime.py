@@ -1,8 +1,14 @@
-"""Benchmark: lockstep ticks/s and per-process memory over Zenoh for N = 10, 30, 60 sensors, beside the
-same scenario on LocalBus and beside a bare Zenoh barrier (bench/zenoh_barrier.py) with the same
-message sizes and neighbour counts; exchange-round latency (median, p99) from the recording.
+"""Benchmark: lockstep ticks/s and per-process memory over Zenoh for N = 10, 30, 60, 100 sensors, beside
+the same scenario on LocalBus and beside a bare Zenoh barrier (bench/zenoh_barrier.py) with the same
+message sizes, neighbour counts and addressing; exchange-round latency (median, p99) from the recording.
 
-    python bench/bench_runtime.py [--sizes 10 30 60] [--ticks 100]   → bench/results/runtime.json
+What explains the cost, per sensor per tick: CPU ms, voluntary context switches (≈ wake-ups of its
+threads, summed over /proc/<pid>/task/*), and the messages its bus received — exchange payloads
+(received + skipped by the pre-decode filter, minus the tick and truth) against the bound
+rounds × (degree + 1) that delivery proportional to degree must meet.
+
+    python bench/bench_runtime.py [--sizes 10 30 60 100] [--ticks 100]   → bench/results/runtime.json,
+                                                                         bench/results/runtime.png
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from topology.graph import neighbour_lists, range_adjacency
 
 
 def scenario(n: int, ticks: int, rounds: int):
-    rows = {10: 2, 30: 3, 60: 6}.get(n, max(1, n // 10))
+    rows = {10: 2, 30: 3, 60: 6, 100: 10}.get(n, max(1, n // 10))
     data = scenario_data(str(ROOT / "scenarios" / "gu_hu_normal.toml"), [], **{
         "run.ticks": ticks, "run.mode": "lockstep", "sensors.n": n, "sensors.grid_rows": rows,
         "sensors.origin": [-4.0 * (n // rows), -4.0 * rows], "estimator.rounds": rounds})
@@ -49,6 +55,23 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
+def voluntary_switches(pid: int) -> int | None:
+    """Voluntary context switches of all threads of a process so far (each is a wait that ended: a
+    wake-up)."""
+    total = 0
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            try:
+                for line in open(f"/proc/{pid}/task/{task}/status"):
+                    if line.startswith("voluntary_ctxt_switches:"):
+                        total += int(line.split()[1])
+            except OSError:
+                continue
+    except OSError:
+        return None
+    return total
+
+
 def cpu_s(pid: int) -> float | None:
     """User + system CPU seconds of a process (all its threads) so far."""
     try:
@@ -62,17 +85,21 @@ class CpuTrace:
     """Samples of (wall time, CPU seconds) per process, to read the CPU spent between two instants
     (the first and last tick: steady state, without interpreter start-up and imports)."""
 
-    def __init__(self) -> None:
+    def __init__(self, switches: bool = False) -> None:
         self.samples: dict[str, list[tuple[float, float]]] = {}
+        self.switches: dict[str, list[tuple[float, float]]] = {}
+        self.count_switches = switches
 
     def sample(self, name: str, pid: int) -> None:
         c = cpu_s(pid)
         if c is not None:
             self.samples.setdefault(name, []).append((time.time(), c))
+        if self.count_switches and (v := voluntary_switches(pid)) is not None:
+            self.switches.setdefault(name, []).append((time.time(), float(v)))
 
-    def between(self, t0: float, t1: float) -> dict[str, float]:
+    def between(self, t0: float, t1: float, what: str = "cpu") -> dict[str, float]:
         out = {}
-        for name, s in self.samples.items():
+        for name, s in (self.samples if what == "cpu" else self.switches).items():
             ts, cs = np.array([x[0] for x in s]), np.array([x[1] for x in s])
             # the last sample may precede t1 by a sampling period (a process exits right after the run)
             if len(ts) > 1 and ts[0] <= t0 and ts[-1] >= t1 - 0.5:
@@ -92,7 +119,7 @@ def per_tick_ms(cpu: dict[str, float], ticks: int) -> dict:
 def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
     data, sc = scenario(n, ticks, rounds)
     peak: dict[int, float] = {}
-    trace = CpuTrace()
+    trace = CpuTrace(switches=True)
     me = os.getpid()
 
     def hook(launcher):
@@ -104,9 +131,11 @@ def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
                     peak[c.proc.pid] = max(peak.get(c.proc.pid, 0.0), m)
                 trace.sample(c.name, c.proc.pid)
 
+    t_start = time.time_ns()
     with tempfile.TemporaryDirectory() as d:
         _summary, info = run_zenoh_to_dir(sc, data, Path(d), quiet=True, on_poll=hook, timeout_s=1800)
         rec = read_recording(Path(d) / "recording.mcap")
+        bus = [json.loads((Path(d) / "stats" / f"agent_{i}.json").read_text()) for i in range(n)]
     t_tick = {m.k: t for key, m, t in rec.messages if key == "world/tick"}
     t_end = {}
     for key, m, t in rec.messages:
@@ -120,11 +149,29 @@ def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
     ks = sorted(t_tick)
     steady = (t_tick[ks[-1]] - t_tick[ks[0]]) / 1e9
     cpu = trace.between(t_tick[ks[0]] / 1e9, t_tick[ks[-1]] / 1e9)
+    sw = trace.between(t_tick[ks[0]] / 1e9, t_tick[ks[-1]] / 1e9, "switches")
+    sensors = [c for name, c in cpu.items() if name.startswith("agent/")]
+    degrees = [len(x) for x in tick_links(rec)]
+    # exchange payloads a sensor's bus took in per tick (all it received but the tick and the truth)
+    xchg_in = [(b["received"] + b["skipped"]) / ticks - 2 for b in bus]
     return {"ticks_per_s": (len(ks) - 1) / steady, "wall_s_including_startup": info["wall_s"],
+            "startup_s": (t_tick[ks[0]] - t_start) / 1e9,   # launch → tick 0 (every process up)
             "cpu_ms_per_tick": per_tick_ms(cpu, len(ks) - 1),
+            "per_sensor_per_tick": {
+                "cpu_ms": 1e3 * float(np.mean(sensors)) / (len(ks) - 1),
+                "voluntary_switches": float(np.mean([c for nm, c in sw.items() if nm.startswith("agent/")]))
+                / (len(ks) - 1),
+                "xchg_received": float(np.mean(xchg_in)), "xchg_received_max": float(np.max(xchg_in)),
+                "bound_rounds_x_degree_plus_1": rounds * (float(np.mean(degrees)) + 1),
+                "mean_degree": float(np.mean(degrees))},
             "round_latency_ms": {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99))},
             "rss_mb": {"median": float(np.median(list(peak.values()))), "max": float(max(peak.values())),
                        "processes": len(peak)}}
+
+
+def tick_links(rec) -> list[list[int]]:
+    """Every sensor's neighbour list in every recorded tick (flattened)."""
+    return [nb for key, m, _ in rec.messages if key == "world/tick" for nb in m.links]
 
 
 def inproc_run(n: int, ticks: int, rounds: int) -> dict:
@@ -187,7 +234,7 @@ def barrier_run(n: int, ticks: int, rounds: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--sizes", type=int, nargs="+", default=[10, 30, 60])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10, 30, 60, 100])
     ap.add_argument("--ticks", type=int, default=100)
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "runtime.json"))
@@ -211,6 +258,37 @@ def main() -> None:
               flush=True)
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps(results, indent=2))
+    figure(results, Path(a.out).with_suffix(".png"))
+
+
+def figure(results: dict, out: Path) -> None:
+    """CPU per tick vs N (runtime, barrier; total and per sensor) and ticks/s vs N (all three)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ns = sorted(int(n) for n in results["sizes"])
+    r = [results["sizes"][str(n)] for n in ns]
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
+    ax[0].plot(ns, [x["zenoh"]["cpu_ms_per_tick"]["total"] for x in r], "o-", label="runtime (Zenoh, lockstep)")
+    ax[0].plot(ns, [x["barrier"]["cpu_ms_per_tick"]["total"] for x in r], "s--", label="bare Zenoh barrier")
+    ax[0].set(xlabel="sensors N", ylabel="CPU ms per tick (all processes)", title="CPU per tick")
+    ax[1].plot(ns, [x["zenoh"]["per_sensor_per_tick"]["cpu_ms"] for x in r], "o-", label="runtime sensor")
+    ax[1].plot(ns, [x["barrier"]["cpu_ms_per_tick"]["worker"] / n for x, n in zip(r, ns)], "s--",
+               label="barrier worker")
+    ax[1].set(xlabel="sensors N", ylabel="CPU ms per tick per sensor", title="per sensor", ylim=(0, None))
+    for key, style, label in (("zenoh", "o-", "runtime (Zenoh)"), ("barrier", "s--", "barrier"),
+                              ("localbus", "^:", "LocalBus (1 process)")):
+        ax[2].plot(ns, [x[key]["ticks_per_s"] for x in r], style, label=label)
+    ax[2].set(xlabel="sensors N", ylabel="lockstep ticks/s", title="throughput", yscale="log")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    fig.suptitle(f"flocktrack runtime, {results['rounds']} rounds, {results['ticks']} ticks, "
+                 f"{results['machine']['cpus']} cores ({results['date']})", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,9 @@
 A coordinator and N worker processes exchange messages of the runtime's sizes with the runtime's
 neighbour lists — tick → R exchange rounds with neighbours → state → next tick — with raw Zenoh and
 raw bytes: no msgpack, no validation, no estimation. What the runtime does on top of this is its cost.
+Addressed like the runtime: a worker puts each round's payload once per neighbour on
+``bar/x/<dst>/<src>`` (and once for observers, whom nobody plays here) and reads only its own inbox
+``bar/x/<id>/*``, so the comparison stays fair.
 
     python bench/zenoh_barrier.py coordinator --n N --rounds R --ticks K --connect EP --nbrs FILE
     python bench/zenoh_barrier.py worker --id I ...
@@ -32,8 +35,9 @@ def worker(a) -> None:
     s = session(a.connect)
     q: queue.SimpleQueue = queue.SimpleQueue()
     s.declare_subscriber("bar/tick", lambda smp: q.put(("tick", smp.payload.to_bytes())))
-    s.declare_subscriber("bar/x/**", lambda smp: q.put((str(smp.key_expr), smp.payload.to_bytes())))
-    pub_x = s.declare_publisher(f"bar/x/{a.id}", congestion_control=zenoh.CongestionControl.BLOCK)
+    s.declare_subscriber(f"bar/x/{a.id}/*", lambda smp: q.put((str(smp.key_expr), smp.payload.to_bytes())))
+    pubs_x = [s.declare_publisher(f"bar/x/{j}/{a.id}", congestion_control=zenoh.CongestionControl.BLOCK)
+              for j in [*nbrs, "obs"]]
     pub_s = s.declare_publisher(f"bar/s/{a.id}", congestion_control=zenoh.CongestionControl.BLOCK)
     tok = s.liveliness().declare_token(f"bar/alive/{a.id}")
     payload = bytes(a.xbytes)
@@ -47,7 +51,9 @@ def worker(a) -> None:
             j, kk, r = kind.rsplit("/", 1)[1], data[0] | data[1] << 8, data[2]
             got.setdefault((kk, r), set()).add(int(j))
         for r in range(a.rounds):
-            pub_x.put(bytes([k & 255, k >> 8, r]) + payload)
+            data = bytes([k & 255, k >> 8, r]) + payload
+            for pub_x in pubs_x:
+                pub_x.put(data)
             need = set(nbrs)
             while not need <= got.get((k & 0xFFFF, r), set()):
                 kind, data = q.get()

@@ -35,10 +35,10 @@ from .state import DashboardState, ReplayModel, RunInfo, Snapshot
 
 log = logging.getLogger(__name__)
 
-#: One Zenoh subscription for everything: samples of *different* subscriptions of one session may be
-#: delivered out of order (measured: an estimate of tick k after the world's tick k+2), samples of one
-#: subscription keep the publication order — and the model relies on it to score a tick in time.
-SUBSCRIPTION = "**"
+#: Everything but the addressed copies of the exchange payloads (agent.wire.OBSERVED). The model relies on
+#: the publication order to score a tick in time; the bus's callbacks keep it across subscriptions
+#: (agent.bus.ZenohBus._in_order).
+SUBSCRIPTIONS = wire.OBSERVED
 
 
 # ============================================================================ recordings (replay)
@@ -834,7 +834,8 @@ class LiveDashboard:
             else:
                 st.count(clock())
 
-        self.bus.subscribe_raw(SUBSCRIPTION, on_raw)
+        for pattern in SUBSCRIPTIONS:
+            self.bus.subscribe_raw(pattern, on_raw)
 
     def send_control(self, verb: str, args: dict) -> None:
         """Thread-safe: queue a control message for the loop thread to publish."""

@@ -12,7 +12,8 @@ applies that identity's rules, ``default_permission: deny`` for everything else:
 identity       may put (ingress ``put``)               may read (``declare_subscriber`` in, ``put`` out)
 =============  ======================================  =============================================
 agent-i        ``ft/<run>/agent/<i>/**``               world/tick, world/event, world/end, target/truth,
-                                                       agent/*/xchg, agent/*/estimate, control/**
+                                                       agent/*/to/<i>/xchg (its inbox only),
+                                                       agent/*/estimate, control/**
 target         ``ft/<run>/target/**``                  world/**, agent/*/estimate
 world          ``ft/<run>/world/**``                   agent/*/state, target/state, control/**,
                                                        launcher/event
@@ -59,7 +60,8 @@ DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 # what each role reads, relative to ft/<run>/ (the agent's own subscriptions: agent/roles/*.py,
 # topology/world.py, flocktrack/record.py, dashboards/live.py, flocktrack/launch.py)
 READS = {
-    "agent": ["world/tick", "world/event", "world/end", "target/truth", "agent/*/xchg", "agent/*/estimate",
+    # ({i}: the agent's own id — a sensor reads only the exchange payloads addressed to it)
+    "agent": ["world/tick", "world/event", "world/end", "target/truth", "agent/*/to/{i}/xchg", "agent/*/estimate",
               "control/**"],
     "target": ["world/**", "agent/*/estimate"],
     "world": ["agent/*/state", "target/state", "control/**", "launcher/event"],
@@ -115,9 +117,10 @@ def acl(run: str, n_sensors: int, routers: list[str] = ("router",)) -> dict:
         role, i = role_of(ident)
         writes = [f"agent/{i}/**"] if role == "agent" else WRITES[role]
         token = f"agent/{i}" if role == "agent" else TOKENS.get(role)
+        reads = [k.format(i=i) for k in READS[role]]
         own = []
-        own.append(rule(f"{ident}-read", ["declare_subscriber"], ["ingress"], READS[role]))
-        own.append(rule(f"{ident}-recv", ["put"], ["egress"], READS[role]))
+        own.append(rule(f"{ident}-read", ["declare_subscriber"], ["ingress"], reads))
+        own.append(rule(f"{ident}-recv", ["put"], ["egress"], reads))
         if writes:
             own.append(rule(f"{ident}-write", ["put"], ["ingress"], writes))
         if token:

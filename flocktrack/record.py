@@ -5,7 +5,9 @@
   Chunks are small and the file is unbuffered, so a crash loses at most the last chunk; the
   scenario (TOML text) and the pre-run design are stored as metadata, so a recording is self-contained.
 * ``python -m flocktrack.record --run R --connect EP --out FILE`` is the recorder *role*: a read-only
-  subscriber to ``ft/<run>/**`` that stops at ``world/end`` (or SIGTERM) and finishes the file.
+  subscriber to ``ft/<run>/…`` (:data:`agent.wire.OBSERVED`: every key but the addressed copies of the
+  exchange payloads, which it records once, from ``agent/<i>/xchg``) that stops at ``world/end`` (or
+  SIGTERM) and finishes the file.
 * :func:`read_recording` yields the messages back (recovering what a truncated file still holds);
   :func:`metrics_from_recording` recomputes ``summary.json`` from a recording alone.
 """
@@ -54,7 +56,10 @@ class McapRecorder:
         self._f.flush()
 
     def write_raw(self, key: str, data: bytes, t_ns: int | None = None) -> None:
-        """Validate and record one wire message (invalid ones are counted, not recorded)."""
+        """Validate and record one wire message (invalid ones are counted, not recorded; the addressed copy
+        of an exchange payload, e.g. from an in-process bus's tap, is left out: it is recorded once)."""
+        if wire.addressed(key):
+            return
         try:
             msg = wire.decode(key, data)
         except wire.WireError as exc:
@@ -270,7 +275,8 @@ def main(argv: list[str] | None = None) -> int:
         return waited > args.linger_max or (waited > args.linger and not roles_up)
 
     def loop() -> None:
-        bus.subscribe_raw("**", on_raw)
+        for pattern in wire.OBSERVED:      # every payload once: not its addressed copies
+            bus.subscribe_raw(pattern, on_raw)
         bus.watch_members(on_member)
         bus.declare_token("recorder/0")
         while not stop.set and not over() and not failed:

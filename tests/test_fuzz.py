@@ -34,7 +34,7 @@ def _seeds(n: int):
         ("world/tick", wire.Tick(k=0, t=0.0, n=n, links=[[] for _ in range(n)], weights=[[] for _ in range(n)],
                                  b=[1.0] * n, delta_max=0, alive=[True] * n, positions=np.zeros((n, 3)))),
         ("agent/2/estimate", wire.Estimate(src=2, k=0, x=np.zeros(3), x_next=np.zeros(3))),
-        ("agent/1/xchg", wire.Xchg(src=1, k=0, r=0, payload={"chi1": np.eye(4), "chi2": np.ones(4),
+        ("agent/1/to/0/xchg", wire.Xchg(src=1, k=0, r=0, payload={"chi1": np.eye(4), "chi2": np.ones(4),
                                                              "chi3": np.eye(4)})),
         ("control/outlier_burst", wire.Control(verb="outlier_burst", args={"agent": 0, "ticks": 2, "magnitude": 5.0})),
         ("world/event", wire.Control(k=0, verb="fault", args={"id": 0, "kind": "duplicate", "phase": "start",
@@ -88,7 +88,8 @@ def test_fuzz_live_sensor_process(tmp_path):
         assert "agent/0" in alive, "sensor process never came up"
         rng = np.random.default_rng(1234)
         seeds = [(k, wire.encode(m)) for k, m in _seeds(10)]
-        keys_extra = ["agent/0/xchg", "agent/7/xchg", "agent/99999/xchg", "world/tick", "control/outlier_burst"]
+        keys_extra = ["agent/0/to/0/xchg", "agent/7/to/0/xchg", "agent/99999/to/0/xchg", "agent/x/to/0/xchg",
+                      "world/tick", "control/outlier_burst"]
         subscribed = 0
         for i in range(N_MESSAGES):
             key, data = seeds[rng.integers(0, len(seeds))]

@@ -191,7 +191,8 @@ def test_each_identity_puts_only_under_its_own_keys(keyset, router):
     p = f"ft/{RUN}/"
     attempts = {
         "agent-3": ["agent/3/estimate", "agent/4/estimate", "agent/4/xchg", "agent/3x/estimate", "world/tick",
-                    "world/end", "target/truth", "control/kill", "alive/agent/4"],
+                    "world/end", "target/truth", "control/kill", "alive/agent/4", "agent/3/to/4/xchg",
+                    "agent/4/to/3/xchg", "agent/4/to/5/xchg"],
         "world": ["world/tick", "world/event", "agent/1/state", "target/truth", "control/pause"],
         "target": ["target/truth", "target/state", "world/tick", "agent/0/estimate"],
         "dashboard": ["control/pause", "control/kill", "world/tick", "agent/0/xchg"],
@@ -204,7 +205,8 @@ def test_each_identity_puts_only_under_its_own_keys(keyset, router):
     sessions["agent-3"].put("ft/otherrun/agent/3/estimate", b"agent-3")  # the ACL is bound to its run
     settle()
     got = Counter((k[len(p):], v.decode()) for k, v in tap.got)
-    assert set(got) == {("agent/3/estimate", "agent-3"), ("world/tick", "world"), ("world/event", "world"),
+    assert set(got) == {("agent/3/estimate", "agent-3"), ("agent/3/to/4/xchg", "agent-3"),
+                        ("world/tick", "world"), ("world/event", "world"),
                         ("target/truth", "target"), ("target/state", "target"), ("control/pause", "dashboard"),
                         ("control/kill", "dashboard")}, got
     for s in sessions.values():
@@ -226,11 +228,13 @@ def test_liveliness_tokens_only_for_oneself(keyset, router):
 
 def test_subscriptions_only_to_what_the_role_reads(keyset, router):
     """agent-3 cannot eavesdrop on what a sensor does not read (other agents' measurements and states,
-    the target's state), not even with a catch-all subscription; it does get what it reads."""
+    the target's state, the exchange payloads addressed to others or to observers), not even with a
+    catch-all subscription; it does get what it reads (its own inbox)."""
     spy: list[str] = []
     s3 = zenoh.open(client_conf(keyset, "agent-3", router))
     subs = [s3.declare_subscriber(pat, lambda smp: spy.append(str(smp.key_expr)))
-            for pat in (f"ft/{RUN}/**", f"ft/{RUN}/agent/4/meas", f"ft/{RUN}/target/state", f"ft/{RUN}/world/tick")]
+            for pat in (f"ft/{RUN}/**", f"ft/{RUN}/agent/4/meas", f"ft/{RUN}/target/state", f"ft/{RUN}/world/tick",
+                        f"ft/{RUN}/agent/*/xchg", f"ft/{RUN}/agent/*/to/5/xchg", f"ft/{RUN}/agent/*/to/3/xchg")]
     w = zenoh.open(client_conf(keyset, "world", router))
     t = zenoh.open(client_conf(keyset, "target", router))
     a4 = zenoh.open(client_conf(keyset, "agent-4", router))
@@ -239,8 +243,10 @@ def test_subscriptions_only_to_what_the_role_reads(keyset, router):
     t.put(f"ft/{RUN}/target/state", b"1")
     a4.put(f"ft/{RUN}/agent/4/meas", b"1")
     a4.put(f"ft/{RUN}/agent/4/state", b"1")
+    for k in ("agent/4/xchg", "agent/4/to/5/xchg", "agent/4/to/3/xchg"):
+        a4.put(f"ft/{RUN}/{k}", b"1")
     settle()
-    assert set(spy) == {f"ft/{RUN}/world/tick"}, spy
+    assert set(spy) == {f"ft/{RUN}/world/tick", f"ft/{RUN}/agent/4/to/3/xchg"}, spy   # its inbox, no other
     for sub in subs:
         sub.undeclare()
     for s in (s3, w, t, a4):
@@ -303,9 +309,10 @@ class Impostor:
         elif key.endswith("/estimate") and msg.src != 4:
             self._put("agent/4/estimate", dataclasses.replace(msg, src=4, x=msg.x + 1e3, x_next=msg.x_next + 1e3))
         elif key.endswith("/xchg") and msg.src in (2, 4):
-            j = 5 if msg.src == 2 else 4
-            self._put(f"agent/{j}/xchg", dataclasses.replace(msg, src=j, payload={k: v + 1e3 for k, v in
-                                                                                   msg.payload.items()}))
+            j = 5 if msg.src == 2 else 4    # (as the sender, to the observers and to sensor 1's inbox)
+            forged = dataclasses.replace(msg, src=j, payload={k: v + 1e3 for k, v in msg.payload.items()})
+            self._put(f"agent/{j}/xchg", forged)
+            self._put(f"agent/{j}/to/1/xchg", forged)
 
     def __call__(self, launcher) -> None:
         if self.bus is None:
@@ -313,7 +320,7 @@ class Impostor:
 
             self.bus = ZenohBus(launcher.run, connect=launcher.endpoint,
                                 config_file=str(self.keyset.client("agent-3")))
-            for pat in ("world/tick", "agent/*/estimate", "agent/*/xchg"):
+            for pat in ("world/tick", "agent/*/estimate", "agent/*/to/3/xchg"):
                 self.bus.subscribe_raw(pat, self._forge)
             for name in ("agent/9", "world/1"):
                 self.bus.declare_token(name)
@@ -348,6 +355,7 @@ def test_an_impostor_with_agent_3s_credentials_has_no_effect_on_a_live_run(tmp_p
     sent: Counter = Counter()
     for f in (tmp_path / "z" / "stats").glob("*.json"):
         sent.update(json.loads(f.read_text()).get("sent_by_key", {}))
+    sent = Counter({k: v for k, v in sent.items() if not wire.addressed(k)})   # (recorded once, unaddressed)
     recorded = json.loads((tmp_path / "z" / "stats" / "recorder_0.json").read_text())["recorded_by_key"]
     assert dict(sent) == recorded
     rec = read_recording(tmp_path / "z" / "recording.mcap")

@@ -198,3 +198,27 @@ def test_peek_round_reads_sender_tick_and_round_without_decoding():
     data = wire.encode(wire.Xchg(src=3, k=12, r=4, payload={"a": np.zeros(2)}))
     assert wire.peek_round("agent/3/xchg", data) == (3, 12, 4)
     assert wire.peek_round("agent/x/xchg", data) is None and wire.peek_round("agent/3/xchg", b"\x01") is None
+
+
+def test_an_addressed_exchange_payload_is_its_senders_and_unseen_by_observers():
+    """``agent/<i>/to/<j>/xchg``: sensor i's payload for sensor j's inbox — owned by i like ``agent/i/xchg``,
+    matched by j's inbox and by no observer pattern (the observers get each payload once, unaddressed)."""
+    from agent.bus import key_matches
+
+    data = wire.encode(wire.Xchg(src=3, k=12, r=4, payload={"a": np.zeros(2)}))
+    assert wire.xchg_key(3, 5) == "agent/3/to/5/xchg" and wire.decode("agent/3/to/5/xchg", data).src == 3
+    assert wire.peek_round("agent/3/to/5/xchg", data) == (3, 12, 4)
+    for key, reason in (("agent/4/to/5/xchg", "not_owner"), ("agent/3/to/3/xchg", "bad_key"),
+                        ("agent/3/to/x/xchg", "bad_key"), ("agent/3/to/5/estimate", "bad_key"),
+                        ("agent/3/via/5/xchg", "bad_key"), ("agent/3/to/-1/xchg", "bad_key")):
+        with pytest.raises(wire.WireError) as e:
+            wire.decode(key, data)
+        assert e.value.reason == reason, key
+    assert key_matches(wire.inbox(5), "agent/3/to/5/xchg") and not key_matches(wire.inbox(5), "agent/3/to/6/xchg")
+    assert wire.addressed("agent/3/to/5/xchg") and not wire.addressed("agent/3/xchg")
+    published = ["world/tick", "world/end", "world/event", "launcher/event", "target/truth", "target/state",
+                 "agent/3/meas", "agent/3/xchg", "agent/3/estimate", "agent/3/state", "fusion/estimate",
+                 "control/pause", "control/fault/x"]
+    for key in published:
+        assert sum(key_matches(p, key) for p in wire.OBSERVED) == 1, key
+    assert not any(key_matches(p, "agent/3/to/5/xchg") for p in wire.OBSERVED)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from ..bus import Bus
-from ..wire import Message
+from ..wire import Message, encode
 
 
 class Role:
@@ -25,6 +25,13 @@ class Role:
     def publish(self, key: str, msg: Message) -> None:
         assert self.bus is not None, "attach() the role to a bus first"
         self.bus.publish(key, msg)
+
+    def publish_to(self, keys: list[str], msg: Message) -> None:
+        """The same message on several keys, encoded once (an exchange payload to each neighbour)."""
+        assert self.bus is not None, "attach() the role to a bus first"
+        data = encode(msg)
+        for key in keys:
+            self.bus.publish_raw(key, data)
 
     def start(self) -> None:
         """Called once after every role is attached (the world publishes tick 0 here)."""

@@ -3,8 +3,10 @@
 Per tick k, once it holds both the world's ``tick`` k and the target's ``truth`` k, sensor i
 
 1. synthesises yᵢ = bᵢ C x + v with its own seeded noise and publishes ``meas``;
-2. runs the estimator's R exchange rounds: publish ``xchg`` (k, r), collect the current neighbours'
-   (k, r) payloads until all arrived or the deadline passes (a missing one is a dropped link);
+2. runs the estimator's R exchange rounds: address ``xchg`` (k, r) to each sensor that hears it by the
+   tick's link table (``agent/i/to/j/xchg``, and once on ``agent/i/xchg`` for observers), collect the
+   current neighbours' (k, r) payloads from its own inbox until all arrived or the deadline passes (a
+   missing one is a dropped link);
 3. updates, publishes ``estimate`` (x̂ₖ used for scoring, x̂ₖ₊₁), applies its controller (flocking:
    Gu & Hu (20) with damping) and publishes ``state`` (position and velocity for tick k+1).
 
@@ -26,7 +28,7 @@ from ..estimators.base import Estimator, TickContext
 from ..link_emulation import LinkEmulator, noise_factor
 from ..models import LinearSensor, integrate_double_integrator
 from ..wire import (Control, Estimate, Meas, Message, State, Tick, Truth, WireError, Xchg, command, fault_event,
-                    peek_round)
+                    inbox, peek_round, xchg_key)
 from .common import Role
 
 log = logging.getLogger(__name__)
@@ -51,6 +53,7 @@ class SensorRole(Role):
         self._xbuf: dict[tuple[int, int], dict[int, dict]] = {}    # (k, r) → sender → payload
         self._prior: np.ndarray | None = None
         self._nbrs: list[int] = []
+        self._out: list[str] = []       # this tick's exchange keys: one per sensor that hears us, + observers'
         self._dead: set[int] = set()
         self.rejoin, self._joining = bool(rejoin), False
         self._sat_out_last = -2   # the last tick sat out (a log line when a stretch begins)
@@ -62,7 +65,7 @@ class SensorRole(Role):
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
         bus.subscribe("target/truth", self._on_truth)
-        bus.subscribe("agent/*/xchg", self._on_xchg, prefilter=self._wants_xchg)
+        bus.subscribe(inbox(self.i), self._on_xchg, prefilter=self._wants_xchg)
         if self.rejoin:
             bus.subscribe("agent/*/estimate", self._on_peer_estimate)
         bus.subscribe("control/outlier_burst", self._on_outlier_burst)
@@ -218,6 +221,9 @@ class SensorRole(Role):
                                                   v=None if v is None else np.array(v, float)))
         links = tick.links[self.i]
         self._nbrs = [j for j in links if tick.alive[j] and j not in self._dead]
+        # range-based link dropping at the transport: only the sensors that hear us get our payloads
+        self._out = [xchg_key(self.i, j) for j, heard in enumerate(tick.links) if j != self.i and self.i in heard]
+        self._out.append(f"agent/{self.i}/xchg")
         if self._joining:
             self._reinitialise()
             log.info("agent/%d: back in the flock at tick %d", self.i, self.k)
@@ -242,7 +248,7 @@ class SensorRole(Role):
             self._finish()
             return
         payload = self.link.corrupt(self.r, self.est.payload(self.r))
-        self.publish(f"agent/{self.i}/xchg", Xchg(src=self.i, k=self.k, r=self.r, payload=payload))
+        self.publish_to(self._out, Xchg(src=self.i, k=self.k, r=self.r, payload=payload))
         self._check_round()
 
     def _check_round(self) -> None:
@@ -252,9 +258,9 @@ class SensorRole(Role):
 
     def _close_round(self) -> None:
         got = self._xbuf.pop((self.k, self.r), {})
-        inbox = {j: got[j] for j in self._nbrs if j in got}
-        self.counters["dropped_links"] += len(self._nbrs) - len(inbox)
-        self.est.absorb(self.r, inbox)
+        heard = {j: got[j] for j in self._nbrs if j in got}
+        self.counters["dropped_links"] += len(self._nbrs) - len(heard)
+        self.est.absorb(self.r, heard)
         self.r += 1
         self._open_round()
 
