@@ -80,15 +80,21 @@ class Bus(Protocol):
     def close(self) -> None: ...
 
 
-def deliver(stats: BusStats, handlers: list[Handler], key: str, data: bytes) -> None:
+def deliver(stats: BusStats, handlers: list[Handler], key: str, data: bytes,
+            decoded: wire.Message | None = None) -> wire.Message | None:
     """Decode ``data`` once, validate, and hand it to ``handlers``; count and drop anything bad.
-    Shared by both buses so their receive paths are identical."""
-    try:
-        msg = wire.decode(key, data)
-    except wire.WireError as exc:
-        stats.dropped[exc.reason] += 1
-        log.debug("dropped message on %s: %s", key, exc)
-        return
+    Shared by both buses so their receive paths are identical. ``decoded``: the same bytes already
+    decoded and validated for a key of the same type and owner (LocalBus: the addressed copies of one
+    payload). Returns the message (None if dropped)."""
+    if decoded is not None:
+        msg = decoded
+    else:
+        try:
+            msg = wire.decode(key, data)
+        except wire.WireError as exc:
+            stats.dropped[exc.reason] += 1
+            log.debug("dropped message on %s: %s", key, exc)
+            return None
     stats.received += 1
     for h in handlers:
         try:
@@ -96,6 +102,7 @@ def deliver(stats: BusStats, handlers: list[Handler], key: str, data: bytes) -> 
         except Exception:  # a role bug must not take the bus down; it is counted and logged
             stats.handler_errors += 1
             log.exception("handler failed on %s", key)
+    return msg
 
 
 class LocalBus:
@@ -111,6 +118,7 @@ class LocalBus:
         self._queue: deque[tuple[str, bytes]] = deque()
         self.taps: list[Callable[[str, bytes], None]] = []
         self._routes: dict[str, list[Handler]] = {}
+        self._types: dict[str, tuple | None] = {}
 
     def publish(self, key: str, msg: wire.Message) -> None:
         self.publish_raw(key, wire.encode(msg))
@@ -128,6 +136,7 @@ class LocalBus:
     def drain(self, max_messages: int | None = None) -> int:
         """Deliver queued messages (including those published while delivering). Returns the count."""
         n = 0
+        last: tuple = (None, None, None)     # (bytes, (type, owner) of its key, message): one decode per payload
         while self._queue and (max_messages is None or n < max_messages):
             key, data = self._queue.popleft()
             for tap in self.taps:
@@ -136,9 +145,23 @@ class LocalBus:
             if handlers is None:
                 handlers = self._routes[key] = [h for p, h in self._subs if key_matches(p, key)]
             if handlers:
-                deliver(self.stats, handlers, key, data)
+                typed = self._typed(key)
+                same = data is last[0] and typed is not None and typed == last[1]
+                msg = deliver(self.stats, handlers, key, data, last[2] if same else None)
+                last = (data, typed, msg) if msg is not None else (None, None, None)
             n += 1
         return n
+
+    def _typed(self, key: str) -> tuple | None:
+        """(message type, owner) a key carries, cached; None for a key that carries nothing."""
+        t = self._types.get(key, False)
+        if t is False:
+            try:
+                t = wire.expected_type(key)
+            except wire.WireError:
+                t = None
+            self._types[key] = t
+        return t
 
     @property
     def idle(self) -> bool:

@@ -67,6 +67,9 @@ def _enc_array(a: np.ndarray) -> dict:
     return {"s": list(a.shape), "d": a.tobytes()}
 
 
+_SUM = np.add.reduce   # (ndarray.sum without numpy's Python wrappers: decoding is the hot path)
+
+
 def _dec_array(v: Any, ndim: tuple[int, ...] = (1, 2)) -> np.ndarray:
     if type(v) is not dict or len(v) != 2 or "s" not in v or "d" not in v:
         raise WireError("bad_array", "array must be {s: shape, d: bytes}")
@@ -84,10 +87,10 @@ def _dec_array(v: Any, ndim: tuple[int, ...] = (1, 2)) -> np.ndarray:
         raise WireError("too_large", f"{size} elements")
     if len(data) != 8 * size:
         raise WireError("bad_shape", f"{len(data)} bytes for shape {shape}")
-    a = np.frombuffer(data, dtype="<f8").reshape(shape).astype(float)
+    a = np.frombuffer(data, dtype="<f8").reshape(shape).copy()
     # a finite sum proves every element finite (NaN/inf propagate); only a non-finite sum (which an
     # overflow of huge finite values can also give) needs the element-wise test
-    if not math.isfinite(a.sum()) and not np.isfinite(a).all():
+    if not math.isfinite(_SUM(a, axis=None)) and not np.isfinite(a).all():
         raise WireError("non_finite", "array holds NaN or inf")
     return a
 

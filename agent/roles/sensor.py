@@ -28,7 +28,7 @@ from ..estimators.base import Estimator, TickContext
 from ..link_emulation import LinkEmulator, noise_factor
 from ..models import LinearSensor, integrate_double_integrator
 from ..wire import (Control, Estimate, Meas, Message, State, Tick, Truth, WireError, Xchg, command, fault_event,
-                    inbox, peek_round, xchg_key)
+                    inbox, xchg_key)
 from .common import Role
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,8 @@ class SensorRole(Role):
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
         bus.subscribe("target/truth", self._on_truth)
-        bus.subscribe(inbox(self.i), self._on_xchg, prefilter=self._wants_xchg)
+        # (no pre-decode filter: the inbox holds only what neighbours addressed to us, nearly all of it used)
+        bus.subscribe(inbox(self.i), self._on_xchg)
         if self.rejoin:
             bus.subscribe("agent/*/estimate", self._on_peer_estimate)
         bus.subscribe("control/outlier_burst", self._on_outlier_burst)
@@ -151,12 +152,6 @@ class SensorRole(Role):
         return self.link.on_idle()
 
     # ------------------------------------------------------------------ exchange payloads
-    def _wants_xchg(self, key: str, data: bytes) -> bool:
-        """The bus's cheap pre-decode test: our own, late and non-neighbour payloads are skipped (anything
-        unsure is decoded and judged by the handler)."""
-        h = peek_round(key, data)
-        return h is None or (h[0] != self.i and not self._refused(*h, early=True))
-
     def _on_xchg(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Xchg)
         # held for whole ticks, a payload of this round will miss it: the round need not wait for it
@@ -165,24 +160,22 @@ class SensorRole(Role):
 
     def _accept_xchg(self, key: str, msg: Xchg) -> None:
         """A payload through the link emulator: buffered for its round unless refused."""
-        if not self._refused(msg.src, msg.k, msg.r, early=False):
+        if not self._refused(msg.src, msg.k, msg.r):
             self._xbuf.setdefault((msg.k, msg.r), {})[msg.src] = msg.payload
             if msg.k == self.k and msg.r == self.r:
                 self._check_round()
 
-    def _refused(self, j: int, k: int, r: int, early: bool) -> bool:
-        """Is a payload (k, r) from j late (its round is over) or not from a neighbour (this tick's, or —
-        ``early`` — by the link table of a tick not begun yet)? Counted if so."""
+    def _refused(self, j: int, k: int, r: int) -> bool:
+        """Is a payload (k, r) from j late (its round is over) or, in the tick under way, not from a
+        neighbour? Counted if so. (A payload of a tick not begun yet is kept: its sender addressed it by
+        that tick's link table.)"""
         if k < self.k or (k == self.k and 0 <= self.r and r < self.r):
             self.counters["late_payloads"] += 1
             return True
-        if k == self.k and self.r >= 0:
-            foreign = j not in self._nbrs
-        else:
-            foreign = early and (t := self._ticks.get(k)) is not None and j not in t.links[self.i]
-        if foreign:
+        if k == self.k and self.r >= 0 and j not in self._nbrs:
             self.counters["non_neighbour_payloads"] += 1
-        return foreign
+            return True
+        return False
 
     # ------------------------------------------------------------------ the tick: measure → rounds → finish
     def _try_begin(self) -> None:
