@@ -107,7 +107,7 @@ class CpuTrace:
         for name, s in (self.samples if what == "cpu" else self.switches).items():
             ts, cs = np.array([x[0] for x in s]), np.array([x[1] for x in s])
             # the last sample may precede t1 by a sampling period (a process exits right after the run)
-            if len(ts) > 1 and ts[0] <= t0 and ts[-1] >= t1 - (0.5 if what == "cpu" else 1.5):
+            if len(ts) > 1 and ts[0] <= t0 and ts[-1] >= t1 - 1.5:
                 out[name] = float(np.interp(t1, ts, cs) - np.interp(t0, ts, cs))
         return out
 
