@@ -17,6 +17,7 @@ installs Debian's chromium when it can (root with apt-get), else the tests skip 
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import shutil
@@ -121,6 +122,7 @@ def drive_browser(port: int, out: dict, shots: Path, world: WorldWatch) -> None:
     A software-rendered page on a busy 2-core machine can fall behind the run and take seconds per
     click; so the page first catches up with the run, then pauses it (through its own Pause button) for
     the pictures and the fault clicks, and resumes it."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
     from playwright.sync_api import sync_playwright
 
     t0 = time.monotonic()
@@ -193,6 +195,11 @@ def drive_browser(port: int, out: dict, shots: Path, world: WorldWatch) -> None:
             _wait_tick(page, out["click_tick"] + 40)
             page.evaluate(CLOSE_NOTICE)
             page.wait_for_timeout(1000)
+            # (the panel's text is re-sent as the run goes: wait for the line rather than read one instant)
+            with contextlib.suppress(PlaywrightTimeout):
+                page.wait_for_function("() => document.body.innerText.includes('sensor 4 · alive') && "
+                                       "document.body.innerText.includes('neighbours (')", timeout=30_000,
+                                       polling=250)
             (shots / "dashboard_inspect.png").write_bytes(page.screenshot())
             out["inspect_text"] = page.inner_text("body")
             mark("inspected", page)
