@@ -191,8 +191,9 @@ class SensorRole(Role):
         every state dropped by the world — and never catch up; this way it loses the ticks it cannot make,
         not all of them. (Lockstep never gets here: the world announces k+1 only after our state k.)"""
         newest = max(kk for kk in self._ticks if kk in self._truth)
+        n = self._ticks[newest].n
         while self.k < newest:
-            self._predict_blind(self._ticks[self.k].n if self.k in self._ticks else self._ticks[newest].n)
+            self._predict_blind(n)
             self.counters["skipped_ticks"] += 1
 
     def _begin(self) -> None:
