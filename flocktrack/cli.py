@@ -8,7 +8,8 @@
     flocktrack fault VERB [name=value ...] [--run RUN --connect ENDPOINT] [--timeout S]
     flocktrack ps [--connect ENDPOINT] [--json]
     flocktrack logs [RUN] [MEMBER] [-f]
-    flocktrack compose SCENARIO [--out DIR]
+    flocktrack compose SCENARIO [--out DIR] [--network bridge|host] [--base-image NAME] [--secure --keys DIR]
+    flocktrack image [--name NAME]                (a base image without a registry: mmdebstrap | docker import)
     flocktrack keys SCENARIO --out DIR            (then: flocktrack run … --secure --keys DIR)
     flocktrack sweep SCENARIO --grid KEY=V1,V2 ... --seeds S --out DIR
     flocktrack metrics RECORDING --out DIR
@@ -340,9 +341,11 @@ def main(argv: list[str] | None = None) -> int:
     rp.set_defaults(fn=cmd_replay)
     from . import compose as _compose
     from . import experiment as _experiment
+    from . import image as _image
     from . import keys as _keys
 
     _compose.register(sub)
+    _image.register(sub)
     _keys.register(sub)
     _experiment.register(sub)
     args = ap.parse_args(argv)

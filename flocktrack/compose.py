@@ -1,8 +1,9 @@
 """``flocktrack compose SCENARIO``: the multi-container deployment of a scenario for Docker Compose.
 
-    flocktrack compose SCENARIO [--out DIR] [--image NAME] [--dashboard-port 8080] [--dashboard-public]
-                                [--restart on-failure|never] [--max-restarts 3] [--mode M] [--set K=V ...]
-                                [--check]
+    flocktrack compose SCENARIO [--out DIR] [--image NAME] [--base-image NAME] [--network bridge|host]
+                                [--router-port 7447] [--data DIR] [--user UID:GID] [--secure --keys DIR]
+                                [--dashboard-port 8080] [--dashboard-public] [--restart on-failure|never]
+                                [--max-restarts 3] [--mode M] [--set K=V ...] [--check]
 
 writes ``DIR/docker-compose.yml``, ``DIR/Dockerfile`` and the run's inputs ``DIR/compose/scenario.toml``,
 ``DIR/compose/design.json`` and ``DIR/compose/meta.json`` (``DIR`` defaults to ``.``). The services are
@@ -17,7 +18,23 @@ one Zenoh router container:
 * ``world``       ``python -m topology … --expect recorder/0``                  (``world/0``)
 
 Every agent connects to ``tcp/router:7447`` and runs under the scenario's run name (keys
-``ft/<run>/…``). The resolved scenario, the pre-run design and the recorder's metadata — the same three
+``ft/<run>/…``). Two network modes:
+
+* ``--network bridge`` (the default, for real deployments): the services share the compose network and
+  reach the router by its service name; only the dashboard publishes a port, on the host's loopback.
+* ``--network host`` (single-host tests, laptops): every service has ``network_mode: host`` and reaches
+  the router on ``127.0.0.1:<--router-port>``; the router and the dashboard listen on 127.0.0.1 only, so
+  every packet stays on the host's loopback. The image is built with ``network: host`` too (a Docker
+  engine started with ``--bridge=none`` has no network for builds otherwise).
+
+``--base-image NAME`` builds on a locally made image (``flocktrack image``) instead of the registry's
+``python:3.11-slim`` (the Dockerfile's ``BASE_IMAGE`` build argument). ``--data DIR`` bind-mounts a host
+directory as the recorder's ``/data`` (recording.mcap, summary.json, metrics.csv) instead of the named
+volume. ``--secure --keys DIR`` (a key set of ``flocktrack keys``) runs every service with its own Zenoh
+identity over TLS + mTLS + password with the router's ACL: each service mounts only its own directory
+``compose/keys/<identity>/`` (:mod:`flocktrack.compose_keys`). With ``--data`` or ``--secure`` the
+services run as the user who generated the file (``--user`` to choose): the host files they read or
+write are that user's. The resolved scenario, the pre-run design and the recorder's metadata — the same three
 files ``flocktrack run`` writes (``run.write_inputs``) — are written to ``DIR/compose/`` and declared as
 file-based Compose ``configs`` (``file: ./compose/…``), which appear read-only in every container that
 needs them under ``/etc/flocktrack/``; the compose file and ``DIR/compose/`` together describe the run.
@@ -49,6 +66,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .compose_keys import KEYS_MOUNT, KeysError, check_keys, stage_keys
 from .launch import RestartPolicy
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,6 +74,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ROUTER_PORT = 7447
 ENDPOINT = f"tcp/router:{ROUTER_PORT}"
 APP_DIR = "/app"                       # WORKDIR of the image: the project's sources (no tests)
+VENV_DIR = "/opt/flocktrack"           # the image's virtual environment (on PATH)
 CONF_DIR = "/etc/flocktrack"           # where the configs appear in the containers
 DATA_DIR = "/data"                     # the recorder's named volume
 DASHBOARD_PORT = 8080                  # the dashboard's port inside its container
@@ -98,6 +117,12 @@ def runtime_policy(restart: str) -> RestartPolicy:
 @dataclass(frozen=True)
 class ComposeOptions:
     image: str = DEFAULT_IMAGE
+    base_image: str | None = None      # the Dockerfile's BASE_IMAGE build argument (default: its FROM)
+    network: str = "bridge"            # bridge: a compose network, the router by name; host: 127.0.0.1 only
+    router_port: int = ROUTER_PORT     # the router's port (on the host with --network host)
+    data: str | None = None            # a host directory bind-mounted as /data (else the named volume)
+    user: str | None = None            # the services' user (UID:GID), default: the image's
+    secure: bool = False               # TLS + mTLS + passwords + ACL, per-service credentials (compose/keys/)
     dashboard_port: int = 8080
     dashboard_public: bool = False     # publish the dashboard on every interface of the host (else 127.0.0.1)
     restart: str = "on-failure"        # the sensors' policy, as `flocktrack run --restart`
@@ -138,27 +163,55 @@ def _mounts(*names: str) -> list[dict]:
     return [{"source": n, "target": _conf(n)} for n in names]
 
 
-def _member_health(run: str, member: str, extra: list[str] = ()) -> dict:
-    return {"test": ["CMD", "python", "-m", "flocktrack.health", "--quiet", "--run", run, "--connect", ENDPOINT,
-                     "--member", member, *extra], **MEMBER_HEALTH}
+def _health(test: list[str], config: list[str], timing: dict) -> dict:
+    return {"test": ["CMD", "python", "-m", "flocktrack.health", "--quiet", *test, *config], **timing}
+
+
+def endpoint(opts: ComposeOptions) -> str:
+    """Where every service dials the router."""
+    proto = "tls" if opts.secure else "tcp"
+    return f"{proto}/127.0.0.1:{opts.router_port}" if opts.network == "host" else f"{proto}/router:{opts.router_port}"
 
 
 def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> dict:
     """The docker-compose document (a plain dict; ``$`` not yet escaped — see :func:`to_yaml`). The run's
     inputs are configs read from the files :func:`input_path` names, relative to the compose file."""
+    if opts.network not in ("bridge", "host"):
+        raise ValueError(f"--network {opts.network!r}: bridge | host")
     run, n = sc.run.name, sc.sensors.n
-    common = ["--connect", ENDPOINT, "--run", run]
+    host_net = opts.network == "host"
+    ep = endpoint(opts)
+    common = ["--connect", ep, "--run", run]
     scen = ["--scenario", _conf("scenario")]
     design = ["--design", _conf("design")]
     sensor_policy = RestartPolicy(opts.restart, opts.max_restarts)
+    dash_port = opts.dashboard_port if host_net else DASHBOARD_PORT
+    build: dict[str, Any] = {"context": opts.context, "dockerfile": opts.dockerfile}
+    if host_net:
+        build["network"] = "host"
+    if opts.base_image:
+        build["args"] = {"BASE_IMAGE": opts.base_image}
 
-    def service(command: list[str], *, restart: str, health: dict, depends: dict[str, str] | None = None,
+    # a secure service's own Zenoh identity: the config in the key directory it alone mounts
+    zconf = ["--config", f"{KEYS_MOUNT}/zenoh.json5"] if opts.secure else []
+
+    def member_health(member: str, extra: list[str] = ()) -> dict:
+        return _health(["--run", run, "--connect", ep, "--member", member, *extra], zconf, MEMBER_HEALTH)
+
+    def service(ident: str, command: list[str], *, restart: str, health: dict, depends: dict[str, str] | None = None,
                 configs: list[dict] | None = None, **extra) -> dict:
-        s: dict[str, Any] = {"image": opts.image,
-                             "build": {"context": opts.context, "dockerfile": opts.dockerfile},
-                             "init": True, "command": command}
+        s: dict[str, Any] = {"image": opts.image, "build": dict(build), "init": True, "command": command}
+        if opts.user:
+            s["user"] = opts.user
+        if host_net:
+            s["network_mode"] = "host"
         if configs:
             s["configs"] = configs
+        vols = list(extra.pop("volumes", []))
+        if opts.secure:    # its own credentials only (flocktrack.compose_keys.stage_keys)
+            vols.append(f"./{INPUTS_DIR}/keys/{ident}:{KEYS_MOUNT}:ro")
+        if vols:
+            s["volumes"] = vols
         s.update(extra)
         if depends:
             s["depends_on"] = {k: {"condition": v} for k, v in depends.items()}
@@ -170,46 +223,65 @@ def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> d
     after_router = {"router": "service_healthy"}
     after_recorder = {"router": "service_healthy", "recorder": "service_started"}
     services: dict[str, dict] = {}
+    if opts.secure:
+        router_cmd = ["python", "-m", "flocktrack.router", "--config", f"{KEYS_MOUNT}/zenoh.json5"]
+    else:
+        router_cmd = ["python", "-m", "flocktrack.router", "--config", ROUTER_CONFIG]
+        if host_net or opts.router_port != ROUTER_PORT:
+            where = "127.0.0.1" if host_net else "0.0.0.0"
+            router_cmd += ["--listen", f"tcp/{where}:{opts.router_port}"]
     services["router"] = service(
-        ["python", "-m", "flocktrack.router", "--config", ROUTER_CONFIG],
-        restart="unless-stopped", expose=[str(ROUTER_PORT)],
-        health={"test": ["CMD", "python", "-m", "flocktrack.health", "--quiet", "--tcp", f"localhost:{ROUTER_PORT}"],
-                **ROUTER_HEALTH})
+        "router", router_cmd, restart="unless-stopped",
+        **({} if host_net else {"expose": [str(opts.router_port)]}),
+        health=_health(["--tcp", f"localhost:{opts.router_port}"], [], ROUTER_HEALTH))
+    data = f"{opts.data}:{DATA_DIR}" if opts.data else f"recordings:{DATA_DIR}"
     services["recorder"] = service(
-        ["python", "-m", "flocktrack.record", "--out", f"{DATA_DIR}/recording.mcap", "--meta", _conf("meta"), *common],
-        restart=docker_restart(RestartPolicy("never")), health=_member_health(run, "recorder/0"),
-        depends=after_router, configs=_mounts("meta"), volumes=[f"recordings:{DATA_DIR}"])
+        "recorder", ["python", "-m", "flocktrack.record", "--out", f"{DATA_DIR}/recording.mcap", "--summary", DATA_DIR,
+                     "--meta", _conf("meta"), *common, *zconf],
+        restart=docker_restart(RestartPolicy("never")), health=member_health("recorder/0"),
+        depends=after_router, configs=_mounts("meta"), volumes=[data])
+    dash_host = "0.0.0.0" if (opts.dashboard_public or not host_net) else "127.0.0.1"
+    scheme, tls = ("https", ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"]) \
+        if opts.secure else ("http", [])
     services["dashboard"] = service(
-        ["python", "-m", "dashboards", "--port", str(DASHBOARD_PORT), "--host", "0.0.0.0", *scen, *common],
+        "dashboard", ["python", "-m", "dashboards", "--port", str(dash_port), "--host", dash_host, *scen, *common,
+                      *zconf, *tls],
         restart=docker_restart(RestartPolicy("on-failure", 3)),
-        health=_member_health(run, "dashboard/0", ["--http", f"http://localhost:{DASHBOARD_PORT}/"]),
+        # (the page of a secure run is HTTPS with a certificate of the run's CA: its token check suffices)
+        health=member_health("dashboard/0",
+                             [] if opts.secure else ["--http", f"{scheme}://localhost:{dash_port}/"]),
         depends=after_router, configs=_mounts("scenario", "design"),
         # its buttons kill processes and partition the flock: on the host's loopback only unless asked
-        ports=[f"{'' if opts.dashboard_public else '127.0.0.1:'}{opts.dashboard_port}:{DASHBOARD_PORT}"])
+        **({} if host_net else
+           {"ports": [f"{'' if opts.dashboard_public else '127.0.0.1:'}{opts.dashboard_port}:{DASHBOARD_PORT}"]}))
     services["target"] = service(
-        ["python", "-m", "agent", "target", *scen, "--mode", mode, *common],
-        restart=docker_restart(RestartPolicy("never")), health=_member_health(run, "target/0"),
+        "target", ["python", "-m", "agent", "target", *scen, "--mode", mode, *common, *zconf],
+        restart=docker_restart(RestartPolicy("never")), health=member_health("target/0"),
         depends=after_recorder, configs=_mounts("scenario"))
     for i in range(n):
-        argv = ["python", "-m", "agent", "sensor", "--id", str(i), *scen, *design, "--mode", mode, *common]
+        argv = ["python", "-m", "agent", "sensor", "--id", str(i), *scen, *design, "--mode", mode, *common,
+                *zconf]
         services[f"sensor-{i}"] = service(
-            _rejoin_on_restart(argv, f"sensor-{i}"), restart=docker_restart(sensor_policy),
-            health=_member_health(run, f"agent/{i}"), depends=after_recorder, configs=_mounts("scenario", "design"))
+            f"agent-{i}", _rejoin_on_restart(argv, f"sensor-{i}"), restart=docker_restart(sensor_policy),
+            health=member_health(f"agent/{i}"), depends=after_recorder,
+            configs=_mounts("scenario", "design"))
 
     world_deps = dict(after_recorder, target="service_started", **{f"sensor-{i}": "service_started" for i in range(n)})
     services["world"] = service(
-        ["python", "-m", "topology", *scen, "--mode", mode, "--expect", "recorder/0",
-         "--startup-timeout", str(STARTUP_TIMEOUT_S), *common],
-        restart=docker_restart(RestartPolicy("never")), health=_member_health(run, "world/0"),
+        "world", ["python", "-m", "topology", *scen, "--mode", mode, "--expect", "recorder/0",
+                  "--startup-timeout", str(STARTUP_TIMEOUT_S), *common, *zconf],
+        restart=docker_restart(RestartPolicy("never")), health=member_health("world/0"),
         depends=world_deps, configs=_mounts("scenario"))
 
-    return {
+    doc = {
         "x-flocktrack": {"run": run, "scenario": scenario_label, "sensors": n, "mode": mode,
-                         "endpoint": ENDPOINT, "generated-by": f"flocktrack compose {scenario_label}"},
+                         "endpoint": ep, "generated-by": f"flocktrack compose {scenario_label}"},
         "services": services,
         "configs": {k: {"file": f"./{input_path(k)}"} for k in CONFIG_FILES},
-        "volumes": {"recordings": {}},
     }
+    if not opts.data:
+        doc["volumes"] = {"recordings": {}}
+    return doc
 
 
 def _rejoin_on_restart(argv: list[str], name: str) -> list[str]:
@@ -322,7 +394,10 @@ def to_yaml(doc: dict, header: str = "") -> str:
 DOCKERFILE = """\
 # The image of every service of docker-compose.yml (router, recorder, dashboard, world, target,
 # sensor-i). Generated by `flocktrack compose` (flocktrack/compose.py); regenerate rather than edit.
-FROM python:3.11-slim
+# BASE_IMAGE: any Debian-like image with python3 (>= 3.11) and its venv module: the registry's
+# python:3.11-slim by default, or one made without a registry by `flocktrack image` (docs/deploy.md).
+ARG BASE_IMAGE=python:3.11-slim
+FROM ${{BASE_IMAGE}}
 
 ENV PYTHONUNBUFFERED=1 \\
     PYTHONDONTWRITEBYTECODE=1 \\
@@ -331,13 +406,18 @@ ENV PYTHONUNBUFFERED=1 \\
     PIP_ROOT_USER_ACTION=ignore \\
     RUST_LOG=error \\
     NUMBA_CACHE_DIR=/tmp/numba-cache \\
-    MPLCONFIGDIR=/tmp/matplotlib
+    MPLCONFIGDIR=/tmp/matplotlib \\
+    VIRTUAL_ENV={venv} \\
+    PATH={venv}/bin:$PATH
 
 WORKDIR {app}
 
-# 1. the dependencies alone: this layer is rebuilt only when pyproject.toml changes
+# 1. the dependencies alone, in a virtual environment (a distribution's python3 refuses system-wide
+#    pip installs): this layer is built once, shared by every service, rebuilt only when
+#    pyproject.toml changes
 COPY pyproject.toml README.md ./
-RUN for p in agent topology dashboards flocktrack; do mkdir -p "$p" && touch "$p/__init__.py"; done \\
+RUN python3 -m venv {venv} \\
+ && for p in agent topology dashboards flocktrack; do mkdir -p "$p" && touch "$p/__init__.py"; done \\
  && pip install . \\
  && pip uninstall -y flocktrack \\
  && rm -rf agent topology dashboards flocktrack build ./*.egg-info
@@ -358,7 +438,7 @@ USER flock
 
 EXPOSE {port} {dash}
 CMD ["flocktrack", "--help"]
-""".format(app=APP_DIR, data=DATA_DIR, port=ROUTER_PORT, dash=DASHBOARD_PORT)
+""".format(app=APP_DIR, data=DATA_DIR, port=ROUTER_PORT, dash=DASHBOARD_PORT, venv=VENV_DIR)
 
 
 # ============================================================================ generate
@@ -388,48 +468,64 @@ def build_paths(out_dir: Path, root: Path = ROOT) -> tuple[str, str]:
     return context, dockerfile
 
 
-def render(scenario: str | Path, out_dir: str | Path = ".", *, image: str = DEFAULT_IMAGE, dashboard_port: int = 8080,
-           restart: str = "on-failure", max_restarts: int = 3, mode: str | None = None,
-           sets: list[str] | None = None, dashboard_public: bool = False) -> dict[str, str]:
+def render(scenario: str | Path, out_dir: str | Path = ".", *, mode: str | None = None, sets: list[str] | None = None,
+           **options) -> dict[str, str]:
     """The files for a scenario, as written to ``out_dir``: ``{"docker-compose.yml": text, "Dockerfile":
-    text, "compose/scenario.toml": text, "compose/design.json": text, "compose/meta.json": text}``."""
-    from agent.scenario import parse_scenario
+    text, "compose/scenario.toml": text, "compose/design.json": text, "compose/meta.json": text}``.
+    ``options``: the fields of :class:`ComposeOptions` (``image``, ``network``, ``secure`` …). With
+    ``secure`` the per-service credentials are written by :func:`stage` (they are not texts to compare)."""
+    from agent.scenario import parse_scenario, scenario_data
 
-    from agent.scenario import scenario_data
-
-    if restart not in ("never", "on-failure"):
-        raise ValueError(f"--restart {restart!r}: never | on-failure")
+    if options.get("restart", "on-failure") not in ("never", "on-failure"):
+        raise ValueError(f"--restart {options['restart']!r}: never | on-failure")
     data = scenario_data(str(scenario), sets or [], **{"run.mode": mode})
     sc = parse_scenario(data, str(scenario))
     label = scenario_label(scenario)
     context, dockerfile = build_paths(Path(out_dir))
-    opts = ComposeOptions(image=image, dashboard_port=dashboard_port, dashboard_public=dashboard_public,
-                          restart=restart, max_restarts=max_restarts, context=context, dockerfile=dockerfile)
+    if (options.get("data") or options.get("secure")) and not options.get("user"):
+        options["user"] = f"{os.getuid()}:{os.getgid()}"   # the host files they read or write are yours
+    opts = ComposeOptions(context=context, dockerfile=dockerfile, **options)
     texts = run_inputs(sc, data, label)
     doc = compose_model(sc, opts, sc.run.mode, label)
-    cmd = f"flocktrack compose {label}" + _flags(image, dashboard_port, restart, max_restarts, mode, sets,
-                                                 dashboard_public)
+    cmd = f"flocktrack compose {label}" + _flags(opts, mode, sets)
+    up = "docker compose up --build"
+    where = f"http{'s' if opts.secure else ''}://localhost:{opts.dashboard_port}"
     header = (f"The multi-container deployment of {label} ({sc.sensors.n} sensors, {sc.run.mode}, run "
-              f"{sc.run.name!r}).\nGenerated by `{cmd}`: regenerate, do not edit\n"
+              f"{sc.run.name!r}, {opts.network} network{', TLS + ACL' if opts.secure else ''}).\n"
+              f"Generated by `{cmd}`: regenerate, do not edit\n"
               f"(tests/test_compose.py checks the committed file is up to date). See docs/deploy.md.\n\n"
               f"The run's inputs are the files in {INPUTS_DIR}/ beside this file (generated too).\n\n"
-              f"    docker compose up --build      # then open http://localhost:{dashboard_port}\n")
+              f"    {up}      # then open {where}\n")
     return {"docker-compose.yml": to_yaml(doc, header), "Dockerfile": DOCKERFILE,
             **{input_path(k): texts[k] for k in CONFIG_FILES}}
 
 
-def _flags(image, dashboard_port, restart, max_restarts, mode, sets, dashboard_public=False) -> str:
+def stage(scenario: str | Path, out_dir: str | Path, keys_dir: str | Path, *, network: str = "bridge",
+          router_port: int = ROUTER_PORT, sets: list[str] | None = None) -> list[Path]:
+    """A secure deployment's per-service credentials, from the key set in ``keys_dir``, written to
+    ``out_dir/compose/keys/`` (:func:`flocktrack.compose_keys.stage_keys`)."""
+    from agent.scenario import parse_scenario, scenario_data
+
+    sc = parse_scenario(scenario_data(str(scenario), sets or []), str(scenario))
+    opts = ComposeOptions(network=network, router_port=router_port, secure=True)
+    dial = "127.0.0.1" if network == "host" else "router"
+    ks = check_keys(keys_dir, sc.run.name, sc.sensors.n, dial, str(scenario))
+    listen = f"tls/{'127.0.0.1' if network == 'host' else '0.0.0.0'}:{router_port}"
+    return stage_keys(ks, out_dir, endpoint(opts), listen, sc.sensors.n)
+
+
+def _flags(opts: ComposeOptions, mode: str | None, sets: list[str] | None) -> str:
+    """The command line that regenerates the file (the options that differ from the defaults)."""
+    d = ComposeOptions()
     f = []
-    if image != DEFAULT_IMAGE:
-        f += ["--image", image]
-    if dashboard_port != 8080:
-        f += ["--dashboard-port", str(dashboard_port)]
-    if dashboard_public:
+    for name in ("image", "base_image", "network", "router_port", "data", "dashboard_port", "restart", "max_restarts"):
+        v = getattr(opts, name)
+        if v != getattr(d, name):
+            f += [f"--{name.replace('_', '-')}", str(v)]
+    if opts.dashboard_public:
         f += ["--dashboard-public"]
-    if restart != "on-failure":
-        f += ["--restart", restart]
-    if max_restarts != 3:
-        f += ["--max-restarts", str(max_restarts)]
+    if opts.secure:
+        f += ["--secure", "--keys", "DIR"]
     if mode:
         f += ["--mode", mode]
     for s in sets or []:
@@ -467,6 +563,22 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--out", default=".",
                     help="directory for docker-compose.yml, Dockerfile and compose/ (the run's inputs; default: .)")
     ap.add_argument("--image", default=DEFAULT_IMAGE, help=f"image name every service runs (default {DEFAULT_IMAGE})")
+    ap.add_argument("--base-image", metavar="NAME",
+                    help="build on this image instead of python:3.11-slim (e.g. one `flocktrack image` made "
+                         "on a machine without a registry)")
+    ap.add_argument("--network", choices=["bridge", "host"], default="bridge",
+                    help="bridge (default): a compose network, the router by service name; host: every "
+                         "service on the host's network, the router and dashboard on 127.0.0.1 (one host, tests)")
+    ap.add_argument("--router-port", type=int, default=ROUTER_PORT, help=f"the router's port (default {ROUTER_PORT})")
+    ap.add_argument("--data", metavar="DIR",
+                    help="host directory bind-mounted as the recorder's /data (recording.mcap, summary.json, "
+                         "metrics.csv); default: the named volume 'recordings'")
+    ap.add_argument("--user", metavar="UID:GID",
+                    help="user the services run as (default: the image's; with --data or --secure: yours)")
+    ap.add_argument("--secure", action="store_true",
+                    help="TLS + mTLS + passwords + the router's ACL; each service mounts only its own credentials "
+                         "(needs --keys)")
+    ap.add_argument("--keys", metavar="DIR", help="with --secure: the key set of `flocktrack keys`")
     ap.add_argument("--dashboard-port", type=int, default=8080, help="host port of the dashboard (default 8080)")
     ap.add_argument("--dashboard-public", action="store_true",
                     help="publish the dashboard on every interface of the host (default: 127.0.0.1 only — its "
@@ -481,9 +593,15 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def cmd_compose(args) -> int:
-    files = render(args.scenario, args.out, image=args.image, dashboard_port=args.dashboard_port,
-                   restart=args.restart, max_restarts=args.max_restarts, mode=args.mode, sets=args.set,
-                   dashboard_public=args.dashboard_public)
+    if args.secure != bool(args.keys):
+        print("error: --secure and --keys DIR go together (make a key set with `flocktrack keys SCENARIO --out DIR`)",
+              file=sys.stderr)
+        return 2
+    data = str(Path(args.data).resolve()) if args.data else None
+    files = render(args.scenario, args.out, mode=args.mode, sets=args.set, image=args.image,
+                   base_image=args.base_image, network=args.network, router_port=args.router_port, data=data,
+                   user=args.user, secure=args.secure, dashboard_port=args.dashboard_port,
+                   dashboard_public=args.dashboard_public, restart=args.restart, max_restarts=args.max_restarts)
     if args.check:
         diffs = stale(files, args.out)
         for d in diffs:
@@ -494,11 +612,21 @@ def cmd_compose(args) -> int:
             return 1
         print(f"{args.out}: docker-compose.yml, Dockerfile and {INPUTS_DIR}/ are up to date")
         return 0
+    if args.secure:
+        try:
+            stage(args.scenario, args.out, args.keys, network=args.network, router_port=args.router_port,
+                  sets=args.set)
+        except KeysError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     paths = write(files, args.out)
+    if data:
+        Path(data).mkdir(parents=True, exist_ok=True)
     if not (ROOT / "pyproject.toml").is_file():
         print(f"note: no flocktrack source tree found; {args.out} must hold the sources to build the image",
               file=sys.stderr)
-    print(f"wrote {', '.join(str(p) for p in paths)}; start it with: "
+    secrets = f"; {INPUTS_DIR}/keys/ holds each service's credentials (keep it private)" if args.secure else ""
+    print(f"wrote {', '.join(str(p) for p in paths)}{secrets}; start it with: "
           f"docker compose -f {paths[0]} up --build")
     return 0
 

@@ -64,14 +64,14 @@ def zenoh_config(connect: str | None = None, listen: str | None = None, mode: st
     return conf
 
 
-def alive_members(run: str, connect: str, names: list[str], timeout: float) -> set[str]:
+def alive_members(run: str, connect: str, names: list[str], timeout: float, config_file: str | None = None) -> set[str]:
     """Which of ``names`` have a liveliness token under ``ft/<run>/alive/`` (raises if no router)."""
     import zenoh
 
     zenoh.init_log_from_env_or("error")
     prefix = f"ft/{run}/alive/"
     found: set[str] = set()
-    session = zenoh.open(zenoh_config(connect=connect, mode="client"))
+    session = zenoh.open(zenoh_config(connect=connect, mode="client", config_file=config_file))
     try:
         deadline = time.monotonic() + timeout
         for name in names:
@@ -92,6 +92,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="the liveliness token ft/<run>/alive/NAME is present (needs --run, --connect)")
     ap.add_argument("--run", help="run name (key prefix ft/<run>/)")
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint")
+    ap.add_argument("--config", default=None,
+                    help="Zenoh json5 config (a secure run's: the member's own identity, TLS + password)")
     ap.add_argument("--http", action="append", default=[], metavar="URL", help="the URL answers (status < 400)")
     ap.add_argument("--timeout", type=float, default=3.0, help="seconds per check (default 3)")
     ap.add_argument("--quiet", action="store_true", help="print nothing on success")
@@ -110,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             failures.append(err)
     if args.member:
         try:
-            found = alive_members(args.run, args.connect, args.member, args.timeout)
+            found = alive_members(args.run, args.connect, args.member, args.timeout, args.config)
         except Exception as exc:  # zenoh.ZError: no router at that endpoint
             failures.append(f"cannot reach a Zenoh router at {args.connect}: {exc}")
         else:

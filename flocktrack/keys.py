@@ -142,7 +142,7 @@ def acl(run: str, n_sensors: int, routers: list[str] = ("router",)) -> dict:
 
 # ============================================================================ certificates
 
-def _write_private(path: Path, data: bytes | str) -> None:
+def write_private(path: Path, data: bytes | str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     if isinstance(data, str):
         data = data.encode()
@@ -291,7 +291,7 @@ def router_config(ks_dir: Path, ident: str, password: str, listen: list[str], co
 
 
 def _dump(path: Path, conf: dict, header: str) -> None:
-    _write_private(path, f"// {header}\n" + json.dumps(conf, indent=2) + "\n")
+    write_private(path, f"// {header}\n" + json.dumps(conf, indent=2) + "\n")
 
 
 def format_acl(block: dict, header: str) -> str:
@@ -361,7 +361,7 @@ WEB_IDENT = "dashboard-web"
 
 def _issue_to(out: Path, ca_key, ca_cert, ident: str, hosts: list[str], days: int = 365) -> None:
     key, cert = issue(ca_key, ca_cert, ident, hosts=hosts, days=days)
-    _write_private(out / "certs" / f"{ident}.key", key_pem(key))
+    write_private(out / "certs" / f"{ident}.key", key_pem(key))
     (out / "certs" / f"{ident}.pem").write_bytes(cert_pem(cert))
 
 
@@ -376,7 +376,7 @@ def make_keys(out: str | Path, run: str, n_sensors: int, endpoint: str = "tls/lo
     out.mkdir(parents=True, exist_ok=True)
     routers = list(dict.fromkeys(["router", *routers]))
     ca_key, ca_cert = make_ca(days)
-    _write_private(out / "ca.key", key_pem(ca_key))
+    write_private(out / "ca.key", key_pem(ca_key))
     (out / "ca.pem").write_bytes(cert_pem(ca_cert))
     passwords: dict[str, str] = {}
     idents = identities(n_sensors) + [r for r in routers if r != "router"]
@@ -384,7 +384,7 @@ def make_keys(out: str | Path, run: str, n_sensors: int, endpoint: str = "tls/lo
         _issue_to(out, ca_key, ca_cert, ident, list(hosts) if ident in routers else [], days)
         passwords[ident] = secrets.token_urlsafe(24)
     _issue_to(out, ca_key, ca_cert, WEB_IDENT, list(hosts), days)
-    _write_private(out / "passwords.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    write_private(out / "passwords.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
     block = acl(run, n_sensors, routers)
     (out / "acl.json5").write_text(format_acl(block, f"access_control for run {run} ({n_sensors} sensors), generated "
                                                      f"by `flocktrack keys`; it is also in router.json5"))

