@@ -72,7 +72,6 @@ from .launch import RestartPolicy
 ROOT = Path(__file__).resolve().parents[1]
 
 ROUTER_PORT = 7447
-ENDPOINT = f"tcp/router:{ROUTER_PORT}"
 APP_DIR = "/app"                       # WORKDIR of the image: the project's sources (no tests)
 VENV_DIR = "/opt/flocktrack"           # the image's virtual environment (on PATH)
 CONF_DIR = "/etc/flocktrack"           # where the configs appear in the containers
