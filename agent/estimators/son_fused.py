@@ -15,17 +15,17 @@ import numpy as np
 from .son_banded import bandwidth
 from .son_ipm import ipm_solve_all
 from .son_jit import kernel
-from .son_layout import ROW_ARRIVAL, ROW_REL, build_split_arrival
+from .son_layout import ROW_REL, build_split_arrival, quadratic_rows
 from .son_problem import evaluate_all
 
 __all__ = ["fused_split_ipm"]
 
 
 @kernel
-def fused_split_ipm(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior, aW, az, arrival, delta, tol,
-                    maxit, polish, ptol):
+def fused_split_ipm(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior, aW, az, arrival, quad_motion,
+                    delta, tol, maxit, polish, ptol):
     """Build (:func:`son_layout.build_split_arrival`; window slots, layout and arrival-cost arguments as
-    there; the arrival rows are the quadratic rows), solve both
+    there; the quadratic rows are the arrival rows, and the motion rows if ``quad_motion``), solve both
     axes (:func:`son_ipm.ipm_solve_all` with ``tol``, ``maxit``, ``polish``, polish gap ``ptol``),
     evaluate (:func:`son_problem.evaluate_all`) and decode, in one compiled call.
 
@@ -35,7 +35,7 @@ def fused_split_ipm(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_pr
     ‖Hᵀu‖∞, iterations, status and polish (per-axis worst)."""
     order, rp, ci, hv, zz, n, uix, pix, vix, rowtype, rownode = build_split_arrival(
         t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior, aW, az, arrival)
-    lsq = rowtype == ROW_ARRIVAL
+    lsq = quadratic_rows(rowtype, quad_motion)
     X, U, info = ipm_solve_all(rp, ci, hv, zz, n, bandwidth(rp, ci), (rowtype, rownode, uix, pix, vix), delta, lsq,
                                tol, maxit, polish, ptol)
     obj, ell, stat, scale, rmax = evaluate_all(rp, ci, hv, zz, n, delta, lsq, X)

@@ -29,7 +29,7 @@ import numpy as np
 from .son_jit import kernel
 
 __all__ = ["NO_ARRIVAL", "ROW_ARRIVAL", "ROW_GPS", "ROW_MOTION_P", "ROW_MOTION_V", "ROW_PRIOR", "ROW_REL",
-           "build_split", "build_split_arrival", "motion_weights", "time_order"]
+           "build_split", "build_split_arrival", "motion_weights", "quadratic_rows", "time_order"]
 
 # row types (the ``rowtype`` array of a layout)
 ROW_MOTION_P, ROW_MOTION_V, ROW_GPS, ROW_REL, ROW_PRIOR, ROW_ARRIVAL = 0, 1, 2, 3, 4, 5
@@ -67,6 +67,16 @@ def motion_weights(dt, q, dt_floor, mode):
         W[1, 0] = -s01 / det
         W[1, 1] = s00 / det
     return W
+
+
+@kernel
+def quadratic_rows(rowtype, quad_motion):
+    """The ``lsq`` mask of a layout: the arrival cost's rows, and the motion rows (2) if ``quad_motion``
+    (a Gaussian motion model instead of the paper's impulsive disturbances)."""
+    lsq = np.empty(rowtype.shape[0], np.bool_)
+    for i in range(rowtype.shape[0]):
+        lsq[i] = rowtype[i] == ROW_ARRIVAL or (quad_motion and rowtype[i] <= ROW_MOTION_V)
+    return lsq
 
 
 @kernel

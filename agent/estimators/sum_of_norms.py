@@ -72,7 +72,7 @@ from .son_banded import bandwidth
 from .son_fused import fused_split_ipm
 from .son_ipm import IPM_STATUS, solve_ipm
 from .son_layout import (NO_ARRIVAL, ROW_ARRIVAL, ROW_GPS, ROW_PRIOR, ROW_REL, build_split, build_split_arrival,
-                         motion_weights, time_order)
+                         motion_weights, quadratic_rows, time_order)
 from .son_problem import HuberProblem, SolveOut, delta_from_lambda, lambda_from_delta
 from .son_reference import CvxpyReference, OsqpSolver, solve_ls
 
@@ -423,6 +423,7 @@ class SumOfNormsEstimator:
         self.dt_floor = float(dt_floor)
         self.flag_sigma = float(flag_sigma)
         self.v_prior = float(v_prior)
+        self.quad_motion = False   #: motion rows quadratic (never Huber); the paper: Huber on every row
         self.solver = solver
         self.solver_options = dict(solver_options or {})
         self.window = MeasurementWindow(W, max_lateness, whitening)
@@ -476,7 +477,7 @@ class SumOfNormsEstimator:
             axes_map = (0, 0)
         order, rp, ci, hv, zz, n, uix, pix, vix, rowtype, rownode = out
         chain = (rowtype, rownode, uix, pix, vix) if split else None
-        lsq = rowtype == ROW_ARRIVAL
+        lsq = quadratic_rows(rowtype, self.quad_motion)
         prob = HuberProblem(rp, ci, hv, zz, int(n), int(bandwidth(rp, ci)), d, chain, lsq if lsq.any() else None)
         layout = {"order": order, "uix": uix, "pix": pix, "vix": vix, "rowtype": rowtype, "rownode": rownode,
                   "split": split, "axes_map": axes_map}
@@ -518,7 +519,7 @@ class SumOfNormsEstimator:
         aW, az = NO_ARRIVAL if arr is None else arr.per_axis()
         order, times, X, target, uav, ellm, ell, sm = fused_split_ipm(
             w.t, w.seq, w.kind, w.z, w.gps, w.wr, w.wg, w.count, self.q, self.dt_floor, self._mode, self.v_prior,
-            aW, az, arr is not None, delta, o.get("tol", 1e-9), o.get("maxit", 60), o.get("polish", True),
+            aW, az, arr is not None, self.quad_motion, delta, o.get("tol", 1e-9), o.get("maxit", 60), o.get("polish", True),
             o.get("polish_gap", 0.3))
         k = order.shape[0]
         mid = (k - 1) // 2
