@@ -336,22 +336,23 @@ class CarrilloScenario:
 
         return UavRelativeSim(replace(self.uav, **uav_overrides), self.target)
 
-    def make_estimators(self) -> dict:
-        """The fusion role's estimators from ``[fusion]`` and ``[baselines]``: {"sum_of_norms": …,
-        "bls": …, "kalman_q<q>": …} (fresh objects)."""
-        from .estimators.fusion_baselines import BatchLeastSquares, KalmanCV
-        from .estimators.sum_of_norms import SumOfNormsEstimator
+    def make_estimators(self, source: str = "scenario") -> dict:
+        """The fusion role's estimators from ``[fusion]`` and ``[baselines]``: {<[fusion] estimator>: …,
+        "bls": …, "kalman_q<q>": …, "robust_kalman_q<q>": …} (fresh objects). The fusion estimator is the
+        :class:`agent.estimators.spec.FusionSpec` named by ``[fusion] estimator`` (errors name ``source``)."""
+        from .estimators.fusion_baselines import BatchLeastSquares, KalmanCV, RobustKalmanCV
+        from .estimators.registry import build_fusion
 
-        f = dict(self.fusion)
-        f.pop("estimator", None)
-        W = int(f.pop("window", 15))
-        son = SumOfNormsEstimator(W=W, **f)
+        name, son = build_fusion(self.fusion, source)
+        W = son.W
         b = self.baselines
-        out = {"sum_of_norms": son,
+        out = {name: son,
                "bls": BatchLeastSquares(W=int(b.get("bls_window", W)), q=son.q, max_lateness=son.window.max_lateness,
                                         dt_floor=son.dt_floor, whitening=son.window.whitening)}
         for q in b.get("kalman_q", [5000.0, 1.0]):
             out[f"kalman_q{float(q):g}"] = KalmanCV(q=float(q), max_lateness=son.window.max_lateness)
+        for q in b.get("robust_kalman_q", []):
+            out[f"robust_kalman_q{float(q):g}"] = RobustKalmanCV(q=float(q), max_lateness=son.window.max_lateness)
         return out
 
 

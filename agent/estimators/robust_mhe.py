@@ -50,12 +50,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from .riccati import huber_curvature, huber_psi, information_update, predict, white_noise_acceleration
 from .son_layout import time_order
-from .sum_of_norms import RelativeMeasurement, Result, SumOfNormsEstimator, whitener
+from .spec import FusionSpec
+from .sum_of_norms import RelativeMeasurement, Result, SumOfNormsEstimator, check_window_keys, whitener
 
 __all__ = ["HUBER_C", "MAD_TO_SIGMA", "ArrivalCost", "RobustMHE", "RobustScale"]
 
@@ -289,3 +291,49 @@ class RobustMHE(SumOfNormsEstimator):
         if self._post is not None:
             return self._predicted_to(rec.t)
         return self._initial(rec.target_position)
+
+
+# ============================================================================= the fusion-role plug-in
+
+
+@dataclass(frozen=True)
+class RobustMHEParams:
+    """``[fusion]`` keys of ``estimator = "robust_mhe"`` (scenarios/carrillo_robust.toml). ``delta``:
+    a fixed threshold instead of the online one (leave it out: δ = c·σ̂)."""
+
+    window: int = 15
+    q: float = 3.0
+    c: float = HUBER_C
+    delta: float | None = None
+    reject: float = 3.0
+    scale_window: int = 300
+    solver: Literal["ipm", "osqp", "cvxpy"] = "ipm"
+    max_lateness: float = 1.0
+    dt_floor: float = 0.02
+    whitening: Literal["chol", "sym"] = "chol"
+    flag_sigma: float = 3.0
+
+
+def _check(source: str, p: RobustMHEParams) -> None:
+    from ..schema import ScenarioError
+
+    check_window_keys(source, p)
+    if not (math.isfinite(p.c) and p.c > 0):
+        raise ScenarioError(source, "fusion.c", f"must be a finite number > 0, got {p.c}",
+                            "c = 1.345 (Huber's 95 %-efficiency constant)")
+    if not p.reject > 0:
+        raise ScenarioError(source, "fusion.reject", f"must be > 0, got {p.reject}",
+                            "e.g. reject = 3.0 (σ̂ units; a large value turns the re-solve off)")
+    if p.scale_window < 30:
+        raise ScenarioError(source, "fusion.scale_window", f"must be ≥ 30 residuals, got {p.scale_window}",
+                            "e.g. scale_window = 300 (20 windows of 15)")
+
+
+def _build(p: RobustMHEParams) -> RobustMHE:
+    return RobustMHE(W=p.window, q=p.q, c=p.c, delta=p.delta, reject=p.reject, scale_window=p.scale_window,
+                     solver=p.solver, max_lateness=p.max_lateness, dt_floor=p.dt_floor, whitening=p.whitening,
+                     flag_sigma=p.flag_sigma)
+
+
+FUSION_SPEC = FusionSpec(name="robust_mhe", params=RobustMHEParams, build=_build, check=_check,
+                         doc="robust moving-horizon fusion: Huber window + arrival cost + online threshold")

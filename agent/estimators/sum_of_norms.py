@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -75,6 +76,7 @@ from .son_layout import (NO_ARRIVAL, ROW_ARRIVAL, ROW_GPS, ROW_PRIOR, ROW_REL, b
                          motion_weights, quadratic_rows, time_order)
 from .son_problem import HuberProblem, SolveOut, delta_from_lambda, lambda_from_delta
 from .son_reference import CvxpyReference, OsqpSolver, solve_ls
+from .spec import FusionSpec
 
 __all__ = ["RelativeMeasurement", "Result", "SumOfNormsEstimator", "MeasurementWindow", "build_joint", "build_split",
            "delta_from_lambda", "lambda_from_delta", "whitener", "motion_whitener"]
@@ -586,3 +588,43 @@ class SumOfNormsEstimator:
         prob, _ = self.problem()
         ls = solve_ls(prob)
         return lambda_from_delta(max(ls.kkt["max_abs_residual"], 1e-300), self.scale)
+
+
+# ============================================================================= the fusion-role plug-in
+
+
+@dataclass(frozen=True)
+class SonParams:
+    """``[fusion]`` keys of ``estimator = "sum_of_norms"`` (the paper's window, scenarios/carrillo_uav.toml)."""
+
+    window: int = 15
+    delta: float = 0.1
+    q: float = 5000.0
+    solver: Literal["ipm", "osqp", "cvxpy", "ls"] = "ipm"
+    max_lateness: float = 1.0
+    dt_floor: float = 0.02
+    whitening: Literal["chol", "sym"] = "chol"
+    flag_sigma: float = 3.0
+
+
+def check_window_keys(source: str, p) -> None:
+    """The window keys every sum-of-norms fusion estimator shares (window, q, max_lateness, dt_floor, and
+    δ when given): positive, precise errors."""
+    from ..schema import ScenarioError
+
+    if p.window < 1:
+        raise ScenarioError(source, "fusion.window", f"must be ≥ 1, got {p.window}", "e.g. window = 15")
+    for key in ("q", "dt_floor", "max_lateness", "flag_sigma") + (("delta",) if p.delta is not None else ()):
+        v = getattr(p, key)
+        if not (math.isfinite(v) and v > 0):
+            raise ScenarioError(source, f"fusion.{key}", f"must be a finite number > 0, got {v}",
+                                f"e.g. {key} = {getattr(type(p), key, 1.0)}")
+
+
+def _build_son(p: SonParams) -> SumOfNormsEstimator:
+    return SumOfNormsEstimator(W=p.window, delta=p.delta, q=p.q, solver=p.solver, max_lateness=p.max_lateness,
+                               dt_floor=p.dt_floor, whitening=p.whitening, flag_sigma=p.flag_sigma)
+
+
+FUSION_SPEC = FusionSpec(name="sum_of_norms", params=SonParams, build=_build_son, check=check_window_keys,
+                         default=True, doc="García Carrillo et al.'s sliding-window sum-of-norms estimator (10)")
