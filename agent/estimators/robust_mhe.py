@@ -265,21 +265,16 @@ class RobustMHE(SumOfNormsEstimator):
             y0[0:2] = res.uav[0]
         y_hat = np.concatenate([res.uav[0], s_hat]) if has_u else s_hat.copy()
         r = zz - G @ y_hat
-        if getattr(self, "_irls", False):
-            from .riccati import huber_irls_weight
-            theta = huber_irls_weight(r, d)
-            yp, Lp = information_update(y0, Lam, G, zz, theta)
-        else:
-            theta = huber_curvature(r, d)
-            force = huber_psi(r, d) * (1.0 - theta)
-            force[np.abs(r) > self.reject * self.scale.sigma] = 0.0
-            yp, Lp = information_update(y0, Lam, G, zz, theta, force)
+        theta = huber_curvature(r, d)
+        force = huber_psi(r, d) * (1.0 - theta)
+        force[np.abs(r) > self.reject * self.scale.sigma] = 0.0   # gross outliers leave no trace
+        yp, Lp = information_update(y0, Lam, G, zz, theta, force)
         Sp = np.linalg.inv(Lp)
         self._post = (float(rec.t), yp[o:], 0.5 * (Sp[o:, o:] + Sp[o:, o:].T))
         # the relative row's residual at the posterior, normalised by its variance under the model
         g = G[0:2]
         h = np.einsum("ij,jk,ik->i", g, Sp, g)
-        rf = zz[0:2] - g @ yp
+        rf = zz[0:2] - g @ yp + h * force[0:2]   # a rejected row: its residual without its own pull
         var = np.where(theta[0:2] > 0, 1.0 - h, 1.0 + h)
         nu = rf / np.sqrt(np.maximum(var, 1e-6))
         self.scale.push(nu)
