@@ -117,14 +117,17 @@ class ArrivalCost:
         return Wa, Wa @ self.xbar
 
     def per_axis(self) -> tuple[np.ndarray, np.ndarray]:
-        """((2, 2, 2), (2, 2)): per axis a, L_a⁻¹ on [p_a, v_a] and L_a⁻¹x̄_a (requires ``decoupled``)."""
-        aW = np.empty((2, 2, 2))
-        az = np.empty((2, 2))
-        for a in range(2):
-            ix = [a, 2 + a]
-            aW[a] = whitener(self.P[np.ix_(ix, ix)])
-            az[a] = aW[a] @ self.xbar[ix]
-        return aW, az
+        """((2, 2, 2), (2, 2)): per axis a, L_a⁻¹ on [p_a, v_a] and L_a⁻¹x̄_a (requires ``decoupled``;
+        computed once: a window is solved twice when it holds a gross outlier)."""
+        if "_per_axis" not in self.__dict__:
+            aW = np.empty((2, 2, 2))
+            az = np.empty((2, 2))
+            for a in range(2):
+                ix = [a, 2 + a]
+                aW[a] = whitener(self.P[np.ix_(ix, ix)])
+                az[a] = aW[a] @ self.xbar[ix]
+            self.__dict__["_per_axis"] = (aW, az)   # a cache beside the frozen fields
+        return self.__dict__["_per_axis"]
 
 
 class RobustMHE(SumOfNormsEstimator):
