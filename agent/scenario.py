@@ -578,6 +578,7 @@ def parse_uav_scenario(data: dict, source: str) -> Scenario:
         msg = str(exc)
         key = msg[1:msg.index("]")] if msg.startswith("[") and "]" in msg else "-"
         raise ScenarioError(source, key, msg, "see scenarios/carrillo_uav.toml for every key") from None
+    cfg.make_estimators(source)  # [fusion]: the named fusion estimator and its keys (ScenarioError names them)
     T = float(T)
     if not T > 0 or not cfg.duration > 0:
         raise ScenarioError(source, "run.T", "T and duration must be > 0")

@@ -17,27 +17,58 @@ from pathlib import Path
 from typing import Any
 
 from .base import Estimator
-from .spec import EstimatorSpec
+from .spec import EstimatorSpec, FusionSpec
 
 _HERE = Path(__file__).resolve().parent
+
+
+def _declared(kind: type, marker: str) -> dict[str, Any]:
+    """name → spec of type ``kind`` declared at module level in this package (modules whose source
+    contains ``marker``), in module-name order."""
+    found: dict[str, Any] = {}
+    for mod in sorted(pkgutil.iter_modules([str(_HERE)]), key=lambda m: m.name):
+        if mod.name.startswith("_") or mod.ispkg or mod.name in ("spec", "registry"):
+            continue
+        if marker not in (_HERE / f"{mod.name}.py").read_text(encoding="utf-8"):
+            continue
+        module = importlib.import_module(f"{__package__}.{mod.name}")
+        for value in vars(module).values():
+            if isinstance(value, kind):
+                if value.name in found and found[value.name] is not value:
+                    raise RuntimeError(f"two estimators are named {value.name!r} ({mod.name} and another module)")
+                found[value.name] = value
+    return found
 
 
 @cache
 def specs() -> dict[str, EstimatorSpec]:
     """name → spec of every registered estimator, in module-name order."""
-    found: dict[str, EstimatorSpec] = {}
-    for mod in sorted(pkgutil.iter_modules([str(_HERE)]), key=lambda m: m.name):
-        if mod.name.startswith("_") or mod.ispkg or mod.name in ("spec", "registry"):
-            continue
-        if "EstimatorSpec(" not in (_HERE / f"{mod.name}.py").read_text(encoding="utf-8"):
-            continue
-        module = importlib.import_module(f"{__package__}.{mod.name}")
-        for value in vars(module).values():
-            if isinstance(value, EstimatorSpec):
-                if value.name in found and found[value.name] is not value:
-                    raise RuntimeError(f"two estimators are named {value.name!r} ({mod.name} and another module)")
-                found[value.name] = value
-    return found
+    return _declared(EstimatorSpec, "EstimatorSpec(")
+
+
+@cache
+def fusion_specs() -> dict[str, FusionSpec]:
+    """name → spec of every fusion-role estimator (``[fusion] estimator``), in module-name order."""
+    return _declared(FusionSpec, "FusionSpec(")
+
+
+def build_fusion(table: Mapping[str, Any], source: str = "scenario") -> tuple[str, Any]:
+    """(name, estimator) of a ``[fusion]`` table: ``estimator`` names the spec (the default spec if
+    absent); the other keys are its ``params``, typed and checked (:class:`agent.schema.ScenarioError`
+    naming ``source``, the key and the fix)."""
+    from ..schema import ScenarioError, build_table, did_you_mean
+
+    have = fusion_specs()
+    t = dict(table)
+    default = [n for n, s in have.items() if s.default]
+    name = t.pop("estimator", default[0] if default else None)
+    if name not in have:
+        raise ScenarioError(source, "fusion.estimator", f"unknown fusion estimator {name!r}",
+                            f"{did_you_mean(str(name), have)}use one of: {', '.join(have)}")
+    spec = have[name]
+    params = build_table(spec.params, t, source, "fusion")
+    spec.check(source, params)
+    return name, spec.build(params)
 
 
 def register(spec: EstimatorSpec) -> None:

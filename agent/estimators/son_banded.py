@@ -26,7 +26,7 @@ import math
 import numpy as np
 
 from .son_jit import kernel
-from .son_layout import ROW_GPS, ROW_MOTION_V, ROW_REL
+from .son_layout import ROW_ARRIVAL, ROW_GPS, ROW_MOTION_V, ROW_REL
 
 __all__ = ["NO_CHAIN", "bandwidth", "factor_normal", "ls_solve_all", "matvec", "normal_workspace", "rmatvec",
            "solve_normal", "weighted_least_squares"]
@@ -173,7 +173,8 @@ def _chain_normal(rp, hv, th, rt, rn, K, Nrel, Nuu, Nup, D, E):
     """The blocks of HᵀΘH of a chain problem, row by row: D_k (2×2 [p_k, v_k] diagonal block, stored
     [00, 01, 11]), E_k (the [p_k, v_k] × [p_{k−1}, v_{k−1}] block, stored [00, 01, 10, 11]), N_uu (the
     GPS part of the leaf's diagonal), N_up (leaf × p_k) and Nrel (K, 2, zero on entry): the relative
-    row's θh_u² and θh_p², which :func:`_chain_thomas` needs to eliminate the leaf."""
+    row's θh_u² and θh_p², which :func:`_chain_thomas` needs to eliminate the leaf. The arrival cost's
+rows (``ROW_ARRIVAL``) add to D_0."""
     for k in range(K):
         Nuu[k] = 0.0
         Nup[k] = 0.0
@@ -218,6 +219,12 @@ def _chain_normal(rp, hv, th, rt, rn, K, Nrel, Nuu, Nup, D, E):
             else:
                 h0 = hv[a]
                 D[k, 0] += t * h0 * h0
+        elif typ == ROW_ARRIVAL:  # the arrival cost on [p_0, v_0]
+            h0 = hv[a]
+            h1 = hv[a + 1]
+            D[k, 0] += t * h0 * h0
+            D[k, 1] += t * h0 * h1
+            D[k, 2] += t * h1 * h1
         else:  # ROW_PRIOR on v_0
             h0 = hv[a]
             D[k, 2] += t * h0 * h0

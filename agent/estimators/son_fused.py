@@ -15,16 +15,17 @@ import numpy as np
 from .son_banded import bandwidth
 from .son_ipm import ipm_solve_all
 from .son_jit import kernel
-from .son_layout import ROW_REL, build_split
+from .son_layout import ROW_REL, build_split_arrival, quadratic_rows
 from .son_problem import evaluate_all
 
 __all__ = ["fused_split_ipm"]
 
 
 @kernel
-def fused_split_ipm(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior, delta, tol, maxit, polish,
-                    ptol):
-    """Build (:func:`son_layout.build_split`; window slots and layout arguments as there), solve both
+def fused_split_ipm(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior, aW, az, arrival, quad_motion,
+                    delta, tol, maxit, polish, ptol):
+    """Build (:func:`son_layout.build_split_arrival`; window slots, layout and arrival-cost arguments as
+    there; the quadratic rows are the arrival rows, and the motion rows if ``quad_motion``), solve both
     axes (:func:`son_ipm.ipm_solve_all` with ``tol``, ``maxit``, ``polish``, polish gap ``ptol``),
     evaluate (:func:`son_problem.evaluate_all`) and decode, in one compiled call.
 
@@ -32,11 +33,12 @@ def fused_split_ipm(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_pr
     uav (k, 2) (NaN for agent 0), ellm (k, 2) ℓ̄ of each node's relative rows, ell (2, m) ℓ̄ of every
     row, and summary (9,): objective, stationarity, stationarity_rel, max |r|, gap (sum over axes),
     ‖Hᵀu‖∞, iterations, status and polish (per-axis worst)."""
-    order, rp, ci, hv, zz, n, uix, pix, vix, rowtype, rownode = build_split(
-        t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior)
-    X, U, info = ipm_solve_all(rp, ci, hv, zz, n, bandwidth(rp, ci), (rowtype, rownode, uix, pix, vix), delta, tol,
-                               maxit, polish, ptol)
-    obj, ell, stat, scale, rmax = evaluate_all(rp, ci, hv, zz, n, delta, X)
+    order, rp, ci, hv, zz, n, uix, pix, vix, rowtype, rownode = build_split_arrival(
+        t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior, aW, az, arrival)
+    lsq = quadratic_rows(rowtype, quad_motion)
+    X, U, info = ipm_solve_all(rp, ci, hv, zz, n, bandwidth(rp, ci), (rowtype, rownode, uix, pix, vix), delta, lsq,
+                               tol, maxit, polish, ptol)
+    obj, ell, stat, scale, rmax = evaluate_all(rp, ci, hv, zz, n, delta, lsq, X)
     k = count
     target = np.empty((k, 4))
     uav = np.full((k, 2), np.nan)

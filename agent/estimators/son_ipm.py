@@ -4,7 +4,9 @@ Mehrotra's predictor–corrector method on the dual of the Huber form of (10) (:
 
     max_u  D(u) = zᵀu − ½‖u‖²   s.t.  Hᵀu = 0,  −δ ≤ u ≤ δ,
 
-whose multiplier of Hᵀu = 0 is the primal estimate x. Variables: x (n), u (m), ya, yb (m; multipliers
+whose multiplier of Hᵀu = 0 is the primal estimate x. The quadratic rows ``lsq`` (the arrival cost of
+:mod:`son_arrival`) have no bound on uᵢ: their multipliers stay 0 and their slacks ∞ (Θᵢ = 1), and they
+take no part in the complementarity μ or the step-length rule. Variables: x (n), u (m), ya, yb (m; multipliers
 of u ≤ δ and −u ≤ δ) with slacks sa = δ − u, sb = δ + u. Every Newton system reduces to the n×n
 normal matrix HᵀΘH with Θ = 1/(1 + ya/sa + yb/sb) ≤ 1, factored and solved by :mod:`son_banded`
 (chain recursion for the per-axis UAV graph, banded Cholesky otherwise).
@@ -57,9 +59,10 @@ IPM_STATUS = ("solved", "max_iter", "stalled", "numerical_error")  #: status cod
 
 
 @kernel
-def _start(rp, ci, hv, z, n, bw, ws, ch, delta, th, x, u, r, ya, yb, rd):
+def _start(rp, ci, hv, z, n, bw, ws, ch, delta, lsq, th, x, u, r, ya, yb, rd):
     """The feasible start: x = least squares (θ = 1), r = z − Hx, u = 0, ya = max(r, 0) + τ,
-    yb = max(−r, 0) + τ with τ = max(δ, ½·mean|r|), so that rd = u − r + ya − yb = 0 and Hᵀu = 0."""
+    yb = max(−r, 0) + τ with τ = max(δ, ½·mean|r|), so that rd = u − r + ya − yb = 0 and Hᵀu = 0
+    (quadratic rows: ya = yb = 0, rd = −r, carried like every linear residual)."""
     m = z.shape[0]
     weighted_least_squares(rp, ci, hv, z, n, bw, th, x, ws, ch)
     matvec(rp, ci, hv, x, r)
@@ -71,24 +74,36 @@ def _start(rp, ci, hv, z, n, bw, ws, ch, delta, th, x, u, r, ya, yb, rd):
     tau = max(delta, 0.5 * amean)
     for i in range(m):
         u[i] = 0.0
-        ya[i] = max(r[i], 0.0) + tau
-        yb[i] = max(-r[i], 0.0) + tau
+        if lsq[i]:
+            ya[i] = 0.0
+            yb[i] = 0.0
+        else:
+            ya[i] = max(r[i], 0.0) + tau
+            yb[i] = max(-r[i], 0.0) + tau
         rd[i] = u[i] - r[i] + ya[i] - yb[i]
 
 
 @kernel(inline=True)
-def _measure(z, delta, u, r, ya, yb, sa, sb):
+def _measure(z, delta, lsq, u, r, ya, yb, sa, sb):
     """The slacks sa = δ − u, sb = δ + u (kept > 0 against rounding), the mean complementarity μ, P(x),
-    the certificate P(x) − D(u) and a signature of the active set read from r.
-    Returns (μ, P, gap, signature)."""
+    the certificate P(x) − D(u) and a signature of the active set read from r (quadratic rows: slacks
+    ∞, outside μ). Returns (μ, P, gap, signature)."""
     m = z.shape[0]
     mu = 0.0
     D = 0.0
     P = 0.0
     sig = 0.0
+    nb = 0
     for i in range(m):
         ui = u[i]
         ri = r[i]
+        if lsq[i]:
+            sa[i] = math.inf
+            sb[i] = math.inf
+            D += z[i] * ui - 0.5 * ui * ui
+            P += 0.5 * ri * ri
+            continue
+        nb += 1
         sa[i] = max(delta - ui, 1e-300)  # > 0 in exact arithmetic; guard against rounding
         sb[i] = max(delta + ui, 1e-300)
         mu += ya[i] * sa[i] + yb[i] * sb[i]
@@ -99,7 +114,7 @@ def _measure(z, delta, u, r, ya, yb, sa, sb):
         else:
             P += delta * a_ - 0.5 * delta * delta
             sig += (i + 1.0) if ri > 0 else -1.618 * (i + 1.0)
-    mu /= 2.0 * m
+    mu /= 2.0 * max(nb, 1)
     return mu, P, P - D, sig
 
 
@@ -166,14 +181,18 @@ def _affine_direction(g, hdx, th, sa, sb, ya, yb, isa, isb, du, dya, dyb):
 
 
 @kernel(inline=True)
-def _centring(mu, amax, sa, sb, ya, yb, du, dya, dyb):
-    """Mehrotra's centring: the complementarity μ_aff after the affine step of length ``amax`` gives
-    σ = min(1, (μ_aff/μ)³). Returns σμ."""
+def _centring(mu, amax, lsq, sa, sb, ya, yb, du, dya, dyb):
+    """Mehrotra's centring: the complementarity μ_aff (over the bounded rows) after the affine step of
+    length ``amax`` gives σ = min(1, (μ_aff/μ)³). Returns σμ."""
     m = sa.shape[0]
     mua = 0.0
+    nb = 0
     for i in range(m):
+        if lsq[i]:
+            continue
+        nb += 1
         mua += (ya[i] + amax * dya[i]) * (sa[i] - amax * du[i]) + (yb[i] + amax * dyb[i]) * (sb[i] + amax * du[i])
-    mua /= 2.0 * m
+    mua /= 2.0 * max(nb, 1)
     sig = mua / mu
     sig = sig * sig * sig
     if sig > 1.0:
@@ -246,7 +265,7 @@ def _take_step(step, x, u, ya, yb, r, rd, rpv, dx, du, dya, dyb, hdx):
 
 
 @kernel
-def _polish(rp, ci, hv, z, n, bw, delta, quad, sgn, ws, ch, Pcur, xn, r):
+def _polish(rp, ci, hv, z, n, bw, delta, lsq, quad, sgn, ws, ch, Pcur, xn, r):
     """Active-set solve: rows with ``quad`` are taken as quadratic, the others as linear with sign
     ``sgn``, and the piecewise-quadratic stationarity H_QᵀH_Q x = H_Qᵀz_Q + δ·H_Lᵀsign is solved into xn.
     Returns (P(xn), consistent, improved): *consistent* means the new residuals fall in the assumed
@@ -278,36 +297,38 @@ def _polish(rp, ci, hv, z, n, bw, delta, quad, sgn, ws, ch, Pcur, xn, r):
     for i in range(m):
         ri = z[i] - r[i]
         r[i] = ri
+        if lsq[i]:
+            continue
         if quad[i]:
             if abs(ri) > hi:
                 consistent = False
         elif ri * sgn[i] < lo:
             consistent = False
-    Pn = huber_sum(r, delta)
+    Pn = huber_sum(r, delta, lsq)
     # a consistent point is an exact optimum: P may exceed Pcur only by rounding
     improved = Pn <= Pcur or (consistent and Pn <= Pcur + 1e-10 * max(1.0, abs(Pcur)))
     return Pn, consistent, improved
 
 
 @kernel
-def _partition_primal(r, delta, quad, sgn):
-    """Active set read from the residuals: quadratic iff |r| < δ."""
+def _partition_primal(r, delta, lsq, quad, sgn):
+    """Active set read from the residuals: quadratic iff |r| < δ (or a quadratic row)."""
     for i in range(r.shape[0]):
-        quad[i] = abs(r[i]) < delta
+        quad[i] = abs(r[i]) < delta or lsq[i]
         sgn[i] = 1.0 if r[i] > 0 else -1.0
 
 
 @kernel
-def _partition_dual(u, ya, yb, delta, quad, sgn):
+def _partition_dual(u, ya, yb, delta, lsq, quad, sgn):
     """Active set read from the IPM's dual iterate: linear iff a bound multiplier dominates its slack
-    (ya/(δ − u) + yb/(δ + u) ≥ 1, i.e. Θ ≤ ½), with the sign of u."""
+    (ya/(δ − u) + yb/(δ + u) ≥ 1, i.e. Θ ≤ ½), with the sign of u (quadratic rows: always quadratic)."""
     for i in range(u.shape[0]):
-        quad[i] = ya[i] / (delta - u[i]) + yb[i] / (delta + u[i]) < 1.0
+        quad[i] = lsq[i] or ya[i] / (delta - u[i]) + yb[i] / (delta + u[i]) < 1.0
         sgn[i] = 1.0 if u[i] > 0 else -1.0
 
 
 @kernel
-def _polish_final(rp, ci, hv, z, n, bw, ws, ch, delta, P, x, u, ya, yb):
+def _polish_final(rp, ci, hv, z, n, bw, ws, ch, delta, lsq, P, x, u, ya, yb):
     """The exact active-set solve after the IPM: from the primal, then from the dual reading of the
     active set, then with rows within 1e-3·δ of the kink (ambiguous at the IPM's tolerance) taken
     quadratic. Keeps the first consistent (exactly optimal) point, else the best improvement on P(x).
@@ -325,12 +346,12 @@ def _polish_final(rp, ci, hv, z, n, bw, ws, ch, delta, P, x, u, ya, yb):
     best = P
     for attempt in range(3):
         if attempt == 0:
-            _partition_primal(r, delta, quad, sgn)
+            _partition_primal(r, delta, lsq, quad, sgn)
         elif attempt == 1:
-            _partition_dual(u, ya, yb, delta, quad, sgn)
+            _partition_dual(u, ya, yb, delta, lsq, quad, sgn)
         else:
-            _partition_primal(r, delta * (1.0 + 1e-3), quad, sgn)
-        Pn, cons, impr = _polish(rp, ci, hv, z, n, bw, delta, quad, sgn, ws, ch, P, xp, rtmp)
+            _partition_primal(r, delta * (1.0 + 1e-3), lsq, quad, sgn)
+        Pn, cons, impr = _polish(rp, ci, hv, z, n, bw, delta, lsq, quad, sgn, ws, ch, P, xp, rtmp)
         if cons and impr:
             x[:] = xp
             return True, False
@@ -347,7 +368,7 @@ def _polish_final(rp, ci, hv, z, n, bw, ws, ch, delta, P, x, u, ya, yb):
 
 
 @kernel
-def _iterate(rp, ci, hv, z, n, bw, ws, ch, delta, tol, maxit, do_polish, ptol, x, u, ya, yb):
+def _iterate(rp, ci, hv, z, n, bw, ws, ch, delta, lsq, tol, maxit, do_polish, ptol, x, u, ya, yb):
     """From the start, predictor–corrector iterations until a stopping rule (module doc) holds, trying
     the polish whenever the gap is below ``ptol``·max(1, P) and the active set changed. Returns
     (iterations, status (0 converged or exact, 1 iteration limit, 2 stalled, 3 numerical breakdown), P,
@@ -358,13 +379,13 @@ def _iterate(rp, ci, hv, z, n, bw, ws, ch, delta, tol, maxit, do_polish, ptol, x
     du, dya, dyb, rtmp, sgn = np.empty(m), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
     quad = np.empty(m, np.bool_)
     rpv, dx, xp = np.zeros(n), np.empty(n), np.empty(n)
-    _start(rp, ci, hv, z, n, bw, ws, ch, delta, th, x, u, r, ya, yb, rd)
+    _start(rp, ci, hv, z, n, bw, ws, ch, delta, lsq, th, x, u, r, ya, yb, rd)
     it = 0
     best_gap = 1e300
     stall = 0
     last_sig = -1.2345e300
     while True:
-        mu, P, gap, sig = _measure(z, delta, u, r, ya, yb, sa, sb)
+        mu, P, gap, sig = _measure(z, delta, lsq, u, r, ya, yb, sa, sb)
         scale_p = max(1.0, abs(P))
         if gap <= tol * scale_p or not mu > 0.0:
             return it, 0, P, False
@@ -379,8 +400,8 @@ def _iterate(rp, ci, hv, z, n, bw, ws, ch, delta, tol, maxit, do_polish, ptol, x
         if do_polish and gap <= ptol * scale_p and sig != last_sig:
             # the active set has probably been identified: try the exact piecewise-quadratic solve
             last_sig = sig
-            _partition_primal(r, delta, quad, sgn)
-            Pn, cons, impr = _polish(rp, ci, hv, z, n, bw, delta, quad, sgn, ws, ch, P, xp, rtmp)
+            _partition_primal(r, delta, lsq, quad, sgn)
+            Pn, cons, impr = _polish(rp, ci, hv, z, n, bw, delta, lsq, quad, sgn, ws, ch, P, xp, rtmp)
             if cons and impr:
                 x[:] = xp
                 return it, 0, Pn, True
@@ -392,7 +413,7 @@ def _iterate(rp, ci, hv, z, n, bw, ws, ch, delta, tol, maxit, do_polish, ptol, x
         factor_normal(rp, ci, hv, th, n, bw, ws, ch)
         _newton_solve(rp, ci, hv, n, bw, ws, ch, tmp, rpv, dx, hdx)
         amax = _affine_direction(g, hdx, th, sa, sb, ya, yb, isa, isb, du, dya, dyb)
-        smu = _centring(mu, amax, sa, sb, ya, yb, du, dya, dyb)
+        smu = _centring(mu, amax, lsq, sa, sb, ya, yb, du, dya, dyb)
         # corrector: the same factors, targets σμ plus the predictor's second-order terms
         _corrector_rhs(smu, rd, ya, yb, isa, isb, th, du, dya, dyb, g, tmp)
         _newton_solve(rp, ci, hv, n, bw, ws, ch, tmp, rpv, dx, hdx)
@@ -404,7 +425,7 @@ def _iterate(rp, ci, hv, z, n, bw, ws, ch, delta, tol, maxit, do_polish, ptol, x
 
 
 @kernel
-def _certificate(rp, ci, hv, z, n, delta, polished, x, u):
+def _certificate(rp, ci, hv, z, n, delta, lsq, polished, x, u):
     """The exact certificate at the returned x: (gap P(x) − D(u), P(x), ‖Hᵀu‖∞). After an exact polish
     u = ψ(z − Hx) (box-feasible; at an exact optimum Hᵀu = 0 and the gap is 0)."""
     m = z.shape[0]
@@ -413,11 +434,13 @@ def _certificate(rp, ci, hv, z, n, delta, polished, x, u):
     matvec(rp, ci, hv, x, r)
     for i in range(m):
         r[i] = z[i] - r[i]
-    P = huber_sum(r, delta)
+    P = huber_sum(r, delta, lsq)
     if polished:
         for i in range(m):
             ri = r[i]
-            if ri > delta:
+            if lsq[i]:
+                pass
+            elif ri > delta:
                 ri = delta
             elif ri < -delta:
                 ri = -delta
@@ -434,7 +457,7 @@ def _certificate(rp, ci, hv, z, n, delta, polished, x, u):
 
 
 @kernel
-def _ipm_one(rp, ci, hv, z, n, bw, ch, delta, tol, maxit, do_polish, ptol, x, u):
+def _ipm_one(rp, ci, hv, z, n, bw, ch, delta, lsq, tol, maxit, do_polish, ptol, x, u):
     """The IPM (module doc) on one problem, x and u written in place. Returns (iterations, certified
     gap P(x) − D(u), P(x), ‖Hᵀu‖∞, polish (1 exact active-set optimum, 0.5 improved only, 0 none),
     status (0 converged / exact, 1 iteration limit, 2 stalled, 3 numerical breakdown))."""
@@ -442,21 +465,22 @@ def _ipm_one(rp, ci, hv, z, n, bw, ch, delta, tol, maxit, do_polish, ptol, x, u)
     ws = normal_workspace(n, bw, ch[2].shape[0])
     ya = np.empty(m)
     yb = np.empty(m)
-    it, status, P, polished = _iterate(rp, ci, hv, z, n, bw, ws, ch, delta, tol, maxit, do_polish, ptol, x, u, ya,
-                                       yb)
+    it, status, P, polished = _iterate(rp, ci, hv, z, n, bw, ws, ch, delta, lsq, tol, maxit, do_polish, ptol, x, u,
+                                       ya, yb)
     inexact = False
     if do_polish and not polished:
-        polished, inexact = _polish_final(rp, ci, hv, z, n, bw, ws, ch, delta, P, x, u, ya, yb)
+        polished, inexact = _polish_final(rp, ci, hv, z, n, bw, ws, ch, delta, lsq, P, x, u, ya, yb)
         if polished:
             status = 0  # an exact optimum, whatever stopped the IPM
-    gap, P, pres = _certificate(rp, ci, hv, z, n, delta, polished, x, u)
+    gap, P, pres = _certificate(rp, ci, hv, z, n, delta, lsq, polished, x, u)
     return it, gap, P, pres, 1.0 if polished else (0.5 if inexact else 0.0), status
 
 
 @kernel
-def ipm_solve_all(rp, ci, hv, z, n, bw, ch, delta, tol, maxit, do_polish, ptol):
+def ipm_solve_all(rp, ci, hv, z, n, bw, ch, delta, lsq, tol, maxit, do_polish, ptol):
     """Solve every axis of a :class:`HuberProblem` (one compiled call). ``ch`` = (rowtype, rownode,
-    uix, pix, vix) of a chain layout, or :data:`son_banded.NO_CHAIN` for the banded path. Returns
+    uix, pix, vix) of a chain layout, or :data:`son_banded.NO_CHAIN` for the banded path; ``lsq`` (m,)
+    the quadratic rows. Returns
     X (A, n), U (A, m), info (A, 6): iterations, certified gap, P, ‖Hᵀu‖∞, polish (1 exact active-set
     optimum, 0.5 improved but not proven exact, 0 none), status (0 converged or exact active-set
     optimum, 1 iteration limit, 2 stalled at the precision limit, 3 numerical breakdown)."""
@@ -466,8 +490,8 @@ def ipm_solve_all(rp, ci, hv, z, n, bw, ch, delta, tol, maxit, do_polish, ptol):
     U = np.empty((A, m))
     info = np.empty((A, 6))
     for a in range(A):
-        it, gap, P, pres, pol, st = _ipm_one(rp, ci, hv[a], z[a], n, bw, ch, delta, tol, maxit, do_polish, ptol,
-                                             X[a], U[a])
+        it, gap, P, pres, pol, st = _ipm_one(rp, ci, hv[a], z[a], n, bw, ch, delta, lsq, tol, maxit, do_polish,
+                                             ptol, X[a], U[a])
         info[a, 0] = it
         info[a, 1] = gap
         info[a, 2] = P
@@ -497,4 +521,4 @@ def ipm_raw(prob: HuberProblem, tol: float = 1e-9, maxit: int = 60, polish: bool
             polish_gap: float = 0.3):
     """The compiled call alone (for benchmarks): returns (X, U, info) of :func:`ipm_solve_all`."""
     return ipm_solve_all(prob.rp, prob.ci, prob.hv, prob.z, prob.n, prob.bw, prob.chain_arg(),
-                         float(prob.delta), float(tol), int(maxit), bool(polish), float(polish_gap))
+                         float(prob.delta), prob.lsq_mask(), float(tol), int(maxit), bool(polish), float(polish_gap))

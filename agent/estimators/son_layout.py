@@ -13,8 +13,11 @@ v_k] of one axis, and contributes, in this order:
 * the relative row (4) (``ROW_REL``, entries [u_k, p_k]): z_k = p_k − u_k, or the absolute row (3)
   [p_k] of the reference agent 0;
 
-and a window of one node adds a weak zero-velocity prior row (``ROW_PRIOR``, entry [v_0]). The chain
-solver of :mod:`son_banded` relies on this layout (``rowtype``, ``rownode``, ``uix``/``pix``/``vix``).
+and a window of one node adds a weak zero-velocity prior row (``ROW_PRIOR``, entry [v_0]). A
+moving-horizon window (:mod:`son_arrival`) puts its **arrival cost** first: two rows
+(``ROW_ARRIVAL``, entries [p_0, v_0] of the oldest node) L⁻¹([p_0; v_0] − x̄) with P = LLᵀ the prior's
+covariance per axis — quadratic rows (never Huber), and no zero-velocity row then. The chain solver
+of :mod:`son_banded` relies on this layout (``rowtype``, ``rownode``, ``uix``/``pix``/``vix``).
 """
 
 from __future__ import annotations
@@ -25,11 +28,13 @@ import numpy as np
 
 from .son_jit import kernel
 
-__all__ = ["ROW_GPS", "ROW_MOTION_P", "ROW_MOTION_V", "ROW_PRIOR", "ROW_REL", "build_split", "motion_weights",
-           "time_order"]
+__all__ = ["NO_ARRIVAL", "ROW_ARRIVAL", "ROW_GPS", "ROW_MOTION_P", "ROW_MOTION_V", "ROW_PRIOR", "ROW_REL",
+           "build_split", "build_split_arrival", "motion_weights", "quadratic_rows", "time_order"]
 
 # row types (the ``rowtype`` array of a layout)
-ROW_MOTION_P, ROW_MOTION_V, ROW_GPS, ROW_REL, ROW_PRIOR = 0, 1, 2, 3, 4
+ROW_MOTION_P, ROW_MOTION_V, ROW_GPS, ROW_REL, ROW_PRIOR, ROW_ARRIVAL = 0, 1, 2, 3, 4, 5
+#: the arrival-cost argument (whitener (2, 2, 2), right-hand side (2, 2)) of a window without one
+NO_ARRIVAL = (np.zeros((2, 2, 2)), np.zeros((2, 2)))
 
 
 @kernel
@@ -62,6 +67,16 @@ def motion_weights(dt, q, dt_floor, mode):
         W[1, 0] = -s01 / det
         W[1, 1] = s00 / det
     return W
+
+
+@kernel
+def quadratic_rows(rowtype, quad_motion):
+    """The ``lsq`` mask of a layout: the arrival cost's rows, and the motion rows (2) if ``quad_motion``
+    (a Gaussian motion model instead of the paper's impulsive disturbances)."""
+    lsq = np.empty(rowtype.shape[0], np.bool_)
+    for i in range(rowtype.shape[0]):
+        lsq[i] = rowtype[i] == ROW_ARRIVAL or (quad_motion and rowtype[i] <= ROW_MOTION_V)
+    return lsq
 
 
 @kernel
@@ -173,10 +188,37 @@ def build_split(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior)
     per-axis whitening scales 1/σ of the relative and GPS measurements; ``mode`` 0 chol / 1 sym.
 
     Returns order, rp, ci, hv (2, nnz), zz (2, m), n, uix, pix, vix, rowtype, rownode."""
+    aW, az = NO_ARRIVAL
+    return build_split_arrival(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior, aW, az, False)
+
+
+@kernel
+def _arrival_rows(rp, ci, hv, zz, rowtype, rownode, m, nz, aW, az, pix, vix):
+    """The arrival cost's two quadratic rows on [p_0, v_0] (per axis a: whitener aW[a] (2×2, lower),
+    right-hand side az[a] = aW[a]·x̄). Returns (m, nz)."""
+    for row in range(2):
+        ci[nz] = pix[0]
+        ci[nz + 1] = vix[0]
+        for ax in range(2):
+            hv[ax, nz] = aW[ax, row, 0]
+            hv[ax, nz + 1] = aW[ax, row, 1]
+            zz[ax, m] = az[ax, row]
+        nz += 2
+        rowtype[m] = ROW_ARRIVAL
+        rownode[m] = 0
+        m += 1
+        rp[m] = nz
+    return m, nz
+
+
+@kernel
+def build_split_arrival(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior, aW, az, arrival):
+    """:func:`build_split` with, if ``arrival``, the arrival cost's rows first (module doc; ``aW`` (2, 2, 2)
+    the per-axis whiteners, ``az`` (2, 2) their right-hand sides). Same returns."""
     order = time_order(t, seq, count)
     uix, pix, vix, n = _node_variables(order, kind, count)
-    mmax = 4 * count + 2
-    nnzmax = 11 * count + 4
+    mmax = 4 * count + 4
+    nnzmax = 11 * count + 8
     rp = np.zeros(mmax + 1, np.int64)
     ci = np.empty(nnzmax, np.int64)
     hv = np.empty((2, nnzmax))
@@ -185,6 +227,8 @@ def build_split(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior)
     rownode = np.empty(mmax, np.int64)
     m = 0
     nz = 0
+    if arrival:
+        m, nz = _arrival_rows(rp, ci, hv, zz, rowtype, rownode, m, nz, aW, az, pix, vix)
     for k in range(count):
         s = order[k]
         if k > 0:
@@ -195,7 +239,7 @@ def build_split(t, seq, kind, z, gps, wr, wg, count, q, dt_floor, mode, v_prior)
             m, nz = _agent_rows(rp, ci, hv, zz, rowtype, rownode, m, nz, k, s, z, gps, wr, wg, uix, pix)
         else:
             m, nz = _absolute_row(rp, ci, hv, zz, rowtype, rownode, m, nz, k, s, z, wr, pix)
-    if count == 1:
+    if count == 1 and not arrival:
         # a single node: weak zero-velocity prior so that the problem has a unique solution
         ci[nz] = vix[0]
         for ax in range(2):

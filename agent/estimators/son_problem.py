@@ -30,6 +30,11 @@ own x: the objective P(x) evaluated by one common function (so solvers are compa
                         dual point u (the IPM does; NaN otherwise);
 * solver-specific residuals (OSQP's prim/dual residuals, …).
 
+Quadratic rows
+--------------
+Rows flagged in ``lsq`` (the moving-horizon estimator's arrival cost, :mod:`son_arrival`) are plain
+least-squares rows, ½rᵢ², never Huber: δ = ∞ on them (no bound on uᵢ in the dual, ℓ̄ᵢ = 0).
+
 The solvers: :func:`son_ipm.solve_ipm` (the default, a compiled interior-point method),
 :class:`son_reference.OsqpSolver`, :class:`son_reference.CvxpyReference` (the literal (10), the tests'
 independent reference) and :func:`son_reference.solve_ls` (least squares, δ = ∞).
@@ -66,6 +71,7 @@ class HuberProblem:
     bw: int
     delta: float
     chain: tuple | None = None  #: (rowtype, rownode, uix, pix, vix) when H has the UAV chain layout
+    lsq: np.ndarray | None = None  #: (m,) bool, rows that are quadratic (δ = ∞: the arrival cost); None: none
 
     @property
     def m(self) -> int:
@@ -84,15 +90,19 @@ class HuberProblem:
         return H
 
     def shape_key(self) -> tuple:
-        """Identity of the sparsity pattern (what an OSQP/cvxpy set-up depends on)."""
-        return (self.axes, self.n, self.rp.tobytes(), self.ci.tobytes())
+        """Identity of the sparsity pattern and of the quadratic rows (what an OSQP/cvxpy set-up depends on)."""
+        return (self.axes, self.n, self.rp.tobytes(), self.ci.tobytes(), self.lsq_mask().tobytes())
+
+    def lsq_mask(self) -> np.ndarray:
+        """(m,) bool: the quadratic rows (all False if none)."""
+        return np.zeros(self.m, np.bool_) if self.lsq is None else np.asarray(self.lsq, np.bool_)
 
     def with_delta(self, delta: float) -> "HuberProblem":
-        return HuberProblem(self.rp, self.ci, self.hv, self.z, self.n, self.bw, float(delta), self.chain)
+        return HuberProblem(self.rp, self.ci, self.hv, self.z, self.n, self.bw, float(delta), self.chain, self.lsq)
 
     def without_chain(self) -> "HuberProblem":
         """The same problem for the generic banded path."""
-        return HuberProblem(self.rp, self.ci, self.hv, self.z, self.n, self.bw, self.delta, None)
+        return HuberProblem(self.rp, self.ci, self.hv, self.z, self.n, self.bw, self.delta, None, self.lsq)
 
     def chain_arg(self) -> tuple:
         """The layout argument ``ch`` of the compiled kernels (:data:`son_banded.NO_CHAIN` if none)."""
@@ -140,12 +150,12 @@ def lambda_from_delta(delta: float, scale: float = 1.0) -> float:
 
 
 @kernel
-def huber_sum(r, delta):
-    """P = Σᵢ huber_δ(rᵢ) of the residuals r."""
+def huber_sum(r, delta, lsq):
+    """P = Σᵢ huber_δ(rᵢ) of the residuals r (½rᵢ² on the quadratic rows ``lsq``)."""
     s = 0.0
     for i in range(r.shape[0]):
         a = abs(r[i])
-        if a <= delta:
+        if a <= delta or lsq[i]:
             s += 0.5 * a * a
         else:
             s += delta * a - 0.5 * delta * delta
@@ -153,9 +163,9 @@ def huber_sum(r, delta):
 
 
 @kernel
-def evaluate_all(rp, ci, hv, z, n, delta, X):
+def evaluate_all(rp, ci, hv, z, n, delta, lsq, X):
     """Common evaluation: objective Σ P, ℓ̄ = soft(r, δ) (A, m), stationarity ‖Hᵀψ(r)‖∞ and its scale
-    max_j Σᵢ|Hᵢⱼ|·δ, and max |r|."""
+    max_j Σᵢ|Hᵢⱼ|·δ, and max |r| (the quadratic rows ``lsq``: ψ = r, ℓ̄ = 0)."""
     A = hv.shape[0]
     m = rp.shape[0] - 1
     ell = np.empty((A, m))
@@ -172,7 +182,10 @@ def evaluate_all(rp, ci, hv, z, n, delta, X):
         for i in range(m):
             ri = z[a, i] - r[i]
             r[i] = ri
-            if ri > delta:
+            if lsq[i]:
+                psi[i] = ri
+                ell[a, i] = 0.0
+            elif ri > delta:
                 psi[i] = delta
                 ell[a, i] = ri - delta
             elif ri < -delta:
@@ -183,7 +196,7 @@ def evaluate_all(rp, ci, hv, z, n, delta, X):
                 ell[a, i] = 0.0
             if abs(ri) > rmax:
                 rmax = abs(ri)
-        obj += huber_sum(r, delta)
+        obj += huber_sum(r, delta, lsq)
         rmatvec(rp, ci, hv[a], psi, g)
         for j in range(n):
             if abs(g[j]) > stat:
@@ -203,7 +216,8 @@ def evaluate_solution(prob: HuberProblem, X: np.ndarray, solver: str, iterations
     """The :class:`SolveOut` of a solver's x (A, n): objective, ℓ̄ and KKT residuals by
     :func:`evaluate_all` (``gap`` NaN unless ``kkt_extra`` gives it), plus the solver's own data."""
     X = np.ascontiguousarray(X, dtype=float)
-    obj, ell, stat, scale, rmax = evaluate_all(prob.rp, prob.ci, prob.hv, prob.z, prob.n, prob.delta, X)
+    obj, ell, stat, scale, rmax = evaluate_all(prob.rp, prob.ci, prob.hv, prob.z, prob.n, prob.delta,
+                                               prob.lsq_mask(), X)
     kkt = {"stationarity": float(stat), "stationarity_rel": float(stat / scale) if scale > 0 else float(stat),
            "gap": float("nan"), "max_abs_residual": float(rmax)}
     if kkt_extra:

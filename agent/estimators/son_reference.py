@@ -10,7 +10,9 @@
 * :func:`solve_ls` — least squares (δ = ∞), the batched-least-squares baseline, by one banded solve
   (:func:`son_banded.ls_solve_all`).
 
-All return the common :class:`son_problem.SolveOut` (:func:`son_problem.evaluate_solution`).
+All return the common :class:`son_problem.SolveOut` (:func:`son_problem.evaluate_solution`). The
+quadratic rows of a problem (``lsq``: the arrival cost) get ℓ̄ᵢ = 0: OSQP bounds aᵢ = bᵢ = 0, cvxpy has
+no ℓ̄ variable for them.
 """
 
 from __future__ import annotations
@@ -112,7 +114,8 @@ class OsqpSolver:
         P = sp.triu(P, format="csc")
         q = np.zeros(A_ * nv)
         l = np.concatenate([prob.z.ravel(), np.zeros(A_ * 2 * m)])
-        u = np.concatenate([prob.z.ravel(), np.full(A_ * 2 * m, np.inf)])
+        free = np.where(prob.lsq_mask(), 0.0, np.inf)  # a, b ≤ 0 (so ℓ̄ = 0) on the quadratic rows
+        u = np.concatenate([prob.z.ravel(), np.tile(np.concatenate([free, free]), A_)])
         vals = np.concatenate([prob.hv.ravel(), const])
         M.data = vals[perm]
         solver = osqp.OSQP()
@@ -189,14 +192,18 @@ class CvxpyReference:
         rows_r = np.concatenate([a * m + rr for a in range(A_)])
         Sr = sp.csr_matrix((np.ones(A_ * nnz), (rows_r, np.arange(A_ * nnz))), shape=(A_ * m, A_ * nnz))
         x = cp.Variable(A_ * n)
-        ell = cp.Variable(A_ * m)
+        rows_free = np.flatnonzero(np.tile(~prob.lsq_mask(), A_))  # no ℓ̄ on the quadratic rows
+        Sf = sp.csr_matrix((np.ones(rows_free.size), (rows_free, np.arange(rows_free.size))),
+                           shape=(A_ * m, rows_free.size))
+        ell_free = cp.Variable(rows_free.size)
+        ell = Sf @ ell_free
         hv = cp.Parameter(A_ * nnz)
         z = cp.Parameter(A_ * m)
         lam = lambda_from_delta(prob.delta)
         wq = 1.0 / (2.0 * lam * lam)  # constants (a parameter times the parametrised Hx is not DPP):
         wl = math.sqrt(2.0) / (1.0 - lam)  # δ is part of the cache key
         Hx = Sr @ cp.multiply(hv, Sc @ x)
-        obj = wq * cp.sum_squares(Hx - z + ell) + wl * cp.norm1(ell)
+        obj = wq * cp.sum_squares(Hx - z + ell) + wl * cp.norm1(ell_free)
         problem = cp.Problem(cp.Minimize(obj))
         return {"problem": problem, "x": x, "ell": ell, "hv": hv, "z": z, "lam": lam}
 

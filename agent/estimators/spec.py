@@ -24,6 +24,12 @@ estimator is adding one file (see docs/adding_an_estimator.md). A spec has
 ``default``        whether it is the estimator of a scenario that names none (exactly one spec says so).
 
 Hooks receive the scenario as an object (typed ``Any`` here: the scenario module imports this one).
+
+The fusion role of a UAV scenario (García Carrillo et al.; ``[fusion]`` in scenarios/carrillo_uav.toml)
+runs a different kind of estimator — a stream of time-stamped relative measurements, ``add(meas)`` then
+``solve()`` — and its modules declare a :class:`FusionSpec` instead: ``name`` (``[fusion] estimator``),
+``params`` (a frozen dataclass: the estimator's own ``[fusion]`` keys, typed and checked like the
+``[estimator]`` keys), ``build(params)`` and an optional ``check(source, params)``.
 """
 
 from __future__ import annotations
@@ -92,4 +98,23 @@ class EstimatorSpec:
 
     def param_names(self) -> list[str]:
         """The estimator's own ``[estimator]`` keys."""
+        return list(self.params.__dataclass_fields__)
+
+
+def _no_fusion_check(source: str, params: Any) -> None:
+    """Nothing beyond the parameters' types."""
+
+
+@dataclass(frozen=True)
+class FusionSpec:
+    """A fusion-role estimator (module doc): ``[fusion] estimator = name`` and its own keys ``params``."""
+
+    name: str
+    build: Callable[[Any], Any]
+    params: type = NoParams
+    check: Callable[[str, Any], None] = _no_fusion_check
+    default: bool = False        #: the estimator of a [fusion] table that names none (one spec)
+    doc: str = field(default="", compare=False)
+
+    def param_names(self) -> list[str]:
         return list(self.params.__dataclass_fields__)

@@ -65,18 +65,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
 from .son_banded import bandwidth
 from .son_fused import fused_split_ipm
 from .son_ipm import IPM_STATUS, solve_ipm
-from .son_layout import ROW_GPS, ROW_PRIOR, ROW_REL, build_split, motion_weights, time_order
+from .son_layout import (NO_ARRIVAL, ROW_ARRIVAL, ROW_GPS, ROW_PRIOR, ROW_REL, build_split, build_split_arrival,
+                         motion_weights, quadratic_rows, time_order)
 from .son_problem import HuberProblem, SolveOut, delta_from_lambda, lambda_from_delta
 from .son_reference import CvxpyReference, OsqpSolver, solve_ls
+from .spec import FusionSpec
 
-__all__ = ["RelativeMeasurement", "Result", "SumOfNormsEstimator", "MeasurementWindow", "delta_from_lambda",
-           "lambda_from_delta", "whitener", "motion_whitener"]
+__all__ = ["RelativeMeasurement", "Result", "SumOfNormsEstimator", "MeasurementWindow", "build_joint", "build_split",
+           "delta_from_lambda", "lambda_from_delta", "whitener", "motion_whitener"]
 
 
 # ============================================================================= the measurement record
@@ -168,10 +171,12 @@ def motion_whitener(dt: float, q: float, dt_floor: float = 0.02, mode: str = "ch
 # ============================================================================= graph builders
 
 
-def build_joint(t, seq, kind, z, gps, Wr, Wg, count, q, dt_floor, mode, v_prior):
+def build_joint(t, seq, kind, z, gps, Wr, Wg, count, q, dt_floor, mode, v_prior, arrival=None):
     """One joint problem (some covariance not diagonal). ``Wr``/``Wg`` (cap, 2, 2) whitening matrices.
-    Node k has variables [u_x, u_y (kind 1 only), p_x, p_y, v_x, v_y]. Same returns as
-    :func:`build_split`, with hv/zz of shape (1, ·) and uix/pix/vix of shape (count, 2)."""
+    Node k has variables [u_x, u_y (kind 1 only), p_x, p_y, v_x, v_y]. ``arrival``: None, or the arrival
+    cost (L⁻¹ (4, 4), L⁻¹x̄ (4,)) on [p_x, p_y, v_x, v_y] of the oldest node (four quadratic rows
+    ``ROW_ARRIVAL`` first). Same returns as :func:`build_split`, with hv/zz of shape (1, ·) and
+    uix/pix/vix of shape (count, 2)."""
     order = time_order(t, seq, count)
     uix = np.full((count, 2), -1, np.int64)
     pix = np.empty((count, 2), np.int64)
@@ -195,6 +200,11 @@ def build_joint(t, seq, kind, z, gps, Wr, Wg, count, q, dt_floor, mode, v_prior)
         rowtype.append(rt)
         rownode.append(k)
 
+    if arrival is not None:
+        Wa, za = arrival
+        cols = [pix[0, 0], pix[0, 1], vix[0, 0], vix[0, 1]]
+        for row in range(4):
+            add_row(cols, list(Wa[row]), float(za[row]), ROW_ARRIVAL, 0)
     for k in range(count):
         s = order[k]
         if k > 0:
@@ -220,7 +230,7 @@ def build_joint(t, seq, kind, z, gps, Wr, Wg, count, q, dt_floor, mode, v_prior)
             zr = Wrs @ z[s]
             for row in range(2):
                 add_row([pix[k, 0], pix[k, 1]], [Wrs[row, 0], Wrs[row, 1]], zr[row], ROW_REL, k)
-    if count == 1:
+    if count == 1 and arrival is None:
         for ax in range(2):
             add_row([vix[0, ax]], [1.0 / v_prior], 0.0, ROW_PRIOR, 0)
     return (order, np.array(rp, np.int64), np.array(ci, np.int64), np.array(hv, float)[None, :],
@@ -415,6 +425,7 @@ class SumOfNormsEstimator:
         self.dt_floor = float(dt_floor)
         self.flag_sigma = float(flag_sigma)
         self.v_prior = float(v_prior)
+        self.quad_motion = False   #: motion rows quadratic (never Huber); the paper: Huber on every row
         self.solver = solver
         self.solver_options = dict(solver_options or {})
         self.window = MeasurementWindow(W, max_lateness, whitening)
@@ -455,20 +466,35 @@ class SumOfNormsEstimator:
         if w.count == 0:
             raise RuntimeError("the window is empty")
         d = self.delta if delta is None else float(delta)
-        if w.split:
-            out = build_split(w.t, w.seq, w.kind, w.z, w.gps, w.wr, w.wg, w.count, self.q, self.dt_floor,
-                              self._mode, self.v_prior)
+        arr = self.arrival_cost()
+        split = self._split(arr)
+        if split:
+            aW, az = NO_ARRIVAL if arr is None else arr.per_axis()
+            out = build_split_arrival(w.t, w.seq, w.kind, w.z, w.gps, w.wr, w.wg, w.count, self.q, self.dt_floor,
+                                      self._mode, self.v_prior, aW, az, arr is not None)
             axes_map = (0, 1)
         else:
             out = build_joint(w.t, w.seq, w.kind, w.z, w.gps, w.Wr, w.Wg, w.count, self.q, self.dt_floor,
-                              self._mode, self.v_prior)
+                              self._mode, self.v_prior, None if arr is None else arr.rows())
             axes_map = (0, 0)
         order, rp, ci, hv, zz, n, uix, pix, vix, rowtype, rownode = out
-        chain = (rowtype, rownode, uix, pix, vix) if w.split else None
-        prob = HuberProblem(rp, ci, hv, zz, int(n), int(bandwidth(rp, ci)), d, chain)
+        chain = (rowtype, rownode, uix, pix, vix) if split else None
+        lsq = quadratic_rows(rowtype, self.quad_motion)
+        prob = HuberProblem(rp, ci, hv, zz, int(n), int(bandwidth(rp, ci)), d, chain, lsq if lsq.any() else None)
         layout = {"order": order, "uix": uix, "pix": pix, "vix": vix, "rowtype": rowtype, "rownode": rownode,
-                  "split": w.split, "axes_map": axes_map}
+                  "split": split, "axes_map": axes_map}
         return prob, layout
+
+    # ------------------------------------------------------------------ arrival cost (moving horizon)
+    def arrival_cost(self):
+        """The prior on the window's oldest node, or None (this estimator has none; the moving-horizon
+        estimator :class:`agent.estimators.robust_mhe.RobustMHE` carries one: an object with ``rows()`` —
+        (L⁻¹ (4, 4), L⁻¹x̄ (4,)) on [p_x, p_y, v_x, v_y] — ``per_axis()`` — the same split by axis, (2, 2, 2)
+        and (2, 2) — and ``decoupled``, whether the axes are independent)."""
+        return None
+
+    def _split(self, arr) -> bool:
+        return self.window.split and (arr is None or arr.decoupled)
 
     def _run_solver(self, prob: HuberProblem) -> SolveOut:
         if self.solver == "ipm":
@@ -482,7 +508,7 @@ class SumOfNormsEstimator:
     def solve(self, delta: float | None = None) -> Result:
         """Solve (10) on the current window (optionally at another δ) and decode the estimates."""
         w = self.window
-        if self.solver == "ipm" and w.count > 0 and w.split:
+        if self.solver == "ipm" and w.count > 0 and self._split(self.arrival_cost()):
             return self._solve_fused(self.delta if delta is None else float(delta))
         prob, lay = self.problem(delta)
         out = self._run_solver(prob)
@@ -491,9 +517,12 @@ class SumOfNormsEstimator:
     def _solve_fused(self, delta: float) -> Result:
         w = self.window
         o = self.solver_options
+        arr = self.arrival_cost()
+        aW, az = NO_ARRIVAL if arr is None else arr.per_axis()
         order, times, X, target, uav, ellm, ell, sm = fused_split_ipm(
             w.t, w.seq, w.kind, w.z, w.gps, w.wr, w.wg, w.count, self.q, self.dt_floor, self._mode, self.v_prior,
-            delta, o.get("tol", 1e-9), o.get("maxit", 60), o.get("polish", True), o.get("polish_gap", 0.3))
+            aW, az, arr is not None, self.quad_motion, delta, o.get("tol", 1e-9), o.get("maxit", 60), o.get("polish", True),
+            o.get("polish_gap", 0.3))
         k = order.shape[0]
         mid = (k - 1) // 2
         obj, stat, stat_rel, rmax, gap, pres, iters, st, pol = sm.tolist()
@@ -507,7 +536,7 @@ class SumOfNormsEstimator:
     def solve_deltas(self, deltas) -> list[Result]:
         """Solve the same window for several δ (the problem is built once): the λ/δ sweep."""
         w = self.window
-        if self.solver == "ipm" and w.count > 0 and w.split:
+        if self.solver == "ipm" and w.count > 0 and self._split(self.arrival_cost()):
             return [self._solve_fused(float(d)) for d in deltas]
         prob, lay = self.problem()
         return [self._decode(prob, lay, self._run_solver(prob.with_delta(float(d)))) for d in deltas]
@@ -559,3 +588,43 @@ class SumOfNormsEstimator:
         prob, _ = self.problem()
         ls = solve_ls(prob)
         return lambda_from_delta(max(ls.kkt["max_abs_residual"], 1e-300), self.scale)
+
+
+# ============================================================================= the fusion-role plug-in
+
+
+@dataclass(frozen=True)
+class SonParams:
+    """``[fusion]`` keys of ``estimator = "sum_of_norms"`` (the paper's window, scenarios/carrillo_uav.toml)."""
+
+    window: int = 15
+    delta: float = 0.1
+    q: float = 5000.0
+    solver: Literal["ipm", "osqp", "cvxpy", "ls"] = "ipm"
+    max_lateness: float = 1.0
+    dt_floor: float = 0.02
+    whitening: Literal["chol", "sym"] = "chol"
+    flag_sigma: float = 3.0
+
+
+def check_window_keys(source: str, p) -> None:
+    """The window keys every sum-of-norms fusion estimator shares (window, q, max_lateness, dt_floor, and
+    δ when given): positive, precise errors."""
+    from ..schema import ScenarioError
+
+    if p.window < 1:
+        raise ScenarioError(source, "fusion.window", f"must be ≥ 1, got {p.window}", "e.g. window = 15")
+    for key in ("q", "dt_floor", "max_lateness", "flag_sigma") + (("delta",) if p.delta is not None else ()):
+        v = getattr(p, key)
+        if not (math.isfinite(v) and v > 0):
+            raise ScenarioError(source, f"fusion.{key}", f"must be a finite number > 0, got {v}",
+                                f"e.g. {key} = {getattr(type(p), key, 1.0)}")
+
+
+def _build_son(p: SonParams) -> SumOfNormsEstimator:
+    return SumOfNormsEstimator(W=p.window, delta=p.delta, q=p.q, solver=p.solver, max_lateness=p.max_lateness,
+                               dt_floor=p.dt_floor, whitening=p.whitening, flag_sigma=p.flag_sigma)
+
+
+FUSION_SPEC = FusionSpec(name="sum_of_norms", params=SonParams, build=_build_son, check=check_window_keys,
+                         default=True, doc="García Carrillo et al.'s sliding-window sum-of-norms estimator (10)")
