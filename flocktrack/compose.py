@@ -15,6 +15,7 @@ one Zenoh router container:
 * ``dashboard``   ``python -m dashboards --port 8080 --host 0.0.0.0 …``          (``dashboard/0``)
 * ``target``      ``python -m agent target …``                                  (``target/0``)
 * ``sensor-<i>``  ``python -m agent sensor --id i …``                           (``agent/<i>``)
+* ``fusion``      ``python -m agent fusion …`` — scenarios with UAVs only         (``fusion/0``)
 * ``world``       ``python -m topology … --expect recorder/0``                  (``world/0``)
 
 Every agent connects to ``tcp/router:7447`` and runs under the scenario's run name (keys
@@ -177,6 +178,8 @@ def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> d
     inputs are configs read from the files :func:`input_path` names, relative to the compose file."""
     if opts.network not in ("bridge", "host"):
         raise ValueError(f"--network {opts.network!r}: bridge | host")
+    from agent.assemble import extra_processes
+
     run, n = sc.run.name, sc.sensors.n
     host_net = opts.network == "host"
     ep = endpoint(opts)
@@ -265,9 +268,20 @@ def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> d
             health=member_health(f"agent/{i}"), depends=after_recorder,
             configs=_mounts("scenario", "design"))
 
-    world_deps = dict(after_recorder, target="service_started", **{f"sensor-{i}": "service_started" for i in range(n)})
+    extra = extra_processes(sc)          # e.g. the fusion solver of the UAV scenarios, as the launcher's plan
+    if extra and opts.secure:
+        raise KeysError(f"{scenario_label}: a secure deployment of a scenario with {', '.join(extra)} is not supported "
+                        f"(no identity or ACL rules for it in `flocktrack keys`); deploy it without --secure")
+    for role in extra:
+        services[role] = service(
+            role, ["python", "-m", "agent", role, *scen, "--mode", mode, *common],
+            restart=docker_restart(RestartPolicy("never")), health=member_health(f"{role}/0"),
+            depends=after_recorder, configs=_mounts("scenario"))
+    world_deps = dict(after_recorder, target="service_started", **{f"sensor-{i}": "service_started" for i in range(n)},
+                      **{role: "service_started" for role in extra})
     services["world"] = service(
         "world", ["python", "-m", "topology", *scen, "--mode", mode, "--expect", "recorder/0",
+                  *[a for role in extra for a in ("--expect", f"{role}/0")],
                   "--startup-timeout", str(STARTUP_TIMEOUT_S), *common, *zconf],
         restart=docker_restart(RestartPolicy("never")), health=member_health("world/0"),
         depends=world_deps, configs=_mounts("scenario"))

@@ -308,6 +308,23 @@ def test_secure_compose_mounts_each_services_own_credentials_only(tmp_path):
     assert cli_main(["compose", str(DEMO), "--out", str(out), "--secure"]) == 2
 
 
+def test_a_fusion_scenario_gets_its_fusion_service():
+    """The UAV scenarios run the fusion solver as the launcher does (its plan's `fusion/0`); the world
+    waits for it; a secure deployment of them is refused (no identity for it in `flocktrack keys`)."""
+    from flocktrack.compose_keys import KeysError
+
+    scen = ROOT / "scenarios" / "carrillo_uav.toml"
+    svcs = load(compose.render(scen, ROOT)["docker-compose.yml"])["services"]
+    assert svcs["fusion"]["command"][:4] == ["python", "-m", "agent", "fusion"]
+    assert svcs["fusion"]["healthcheck"]["test"][svcs["fusion"]["healthcheck"]["test"].index("--member") + 1] == "fusion/0"
+    world = svcs["world"]["command"]
+    assert [world[i + 1] for i, a in enumerate(world) if a == "--expect"] == ["recorder/0", "fusion/0"]
+    assert svcs["world"]["depends_on"]["fusion"] == {"condition": "service_started"}
+    assert "fusion" not in load(compose.render(DEMO, ROOT)["docker-compose.yml"])["services"]
+    with pytest.raises(KeysError, match="not supported"):
+        compose.render(scen, ROOT, secure=True, network="host")
+
+
 def test_restart_policy_mapping():
     assert compose.docker_restart(RestartPolicy("never")) == "no"
     assert compose.docker_restart(RestartPolicy("on-failure", 3)) == "on-failure:3"
@@ -543,7 +560,8 @@ def _toposort(svcs: dict) -> list[str]:
 
 
 @pytest.mark.slow
-def test_compose_services_run_as_processes(tmp_path):
+@pytest.mark.parametrize("scenario_file", ["chen_switching.toml", "carrillo_uav.toml"])
+def test_compose_services_run_as_processes(tmp_path, scenario_file):
     """Generate a compose file (Chen's switching scenario, lockstep, 40 ticks), then start every
     service's command as a local process in dependency order — honouring `service_healthy` with the
     service's own health check — with only what Docker would provide rewritten: `router` → 127.0.0.1,
@@ -552,7 +570,7 @@ def test_compose_services_run_as_processes(tmp_path):
     from flocktrack.cli import main as cli_main
     from flocktrack.record import metrics_from_recording
 
-    scen = ROOT / "scenarios" / "chen_switching.toml"
+    scen = ROOT / "scenarios" / scenario_file
     compose.write(compose.render(scen, tmp_path, mode="lockstep", sets=["run.ticks=40"]), tmp_path)
     doc = load((tmp_path / "docker-compose.yml").read_text())
     validate(doc)
@@ -612,8 +630,9 @@ def test_compose_services_run_as_processes(tmp_path):
             procs[name] = subprocess.Popen(argv_of(name, svc["command"]), cwd=str(ROOT), env=env,
                                            stdout=open(logs[name], "wb"), stderr=subprocess.STDOUT)
         assert procs["world"].wait(300) == 0, logs["world"].read_text()
-        for name in [n for n in order if n.startswith("sensor-")] + ["target", "recorder"]:
-            assert procs[name].wait(60) == 0, f"{name}: {logs[name].read_text()}"
+        for svc in [n for n in order if n.startswith("sensor-")] + ["target", "recorder"] + (
+                ["fusion"] if "fusion" in procs else []):
+            assert procs[svc].wait(60) == 0, f"{svc}: {logs[svc].read_text()}"
         assert procs["dashboard"].poll() is None and procs["router"].poll() is None   # they stay up
     finally:
         for name in reversed(order):
