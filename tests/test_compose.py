@@ -562,7 +562,7 @@ def _toposort(svcs: dict) -> list[str]:
 @pytest.mark.slow
 @pytest.mark.parametrize("scenario_file", ["chen_switching.toml", "carrillo_uav.toml"])
 def test_compose_services_run_as_processes(tmp_path, scenario_file):
-    """Generate a compose file (Chen's switching scenario, lockstep, 40 ticks), then start every
+    """Generate a compose file (Chen's switching scenario; the UAV scenario with its fusion service; lockstep, 40 ticks), then start every
     service's command as a local process in dependency order — honouring `service_healthy` with the
     service's own health check — with only what Docker would provide rewritten: `router` → 127.0.0.1,
     the config mounts and the volume → files under tmp_path. The run completes, every member's health
