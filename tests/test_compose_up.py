@@ -172,7 +172,7 @@ def test_compose_up_secure_killed_sensor_is_restarted_and_rejoins(engine, built,
 
     keys = tmp_path / "keys"
     assert main(["keys", str(DEMO), *SMALL, "--out", str(keys)]) == 0
-    doc = _generate(tmp_path, "--mode", "realtime", "--set", "run.ticks=400", "--set", "run.speed=0.5",
+    doc = _generate(tmp_path, "--mode", "realtime", "--set", "run.ticks=300", "--set", "run.speed=0.5",
                     "--secure", "--keys", str(keys))
     svcs = doc["services"]
     # each service mounts only its own credentials
@@ -186,8 +186,9 @@ def test_compose_up_secure_killed_sensor_is_restarted_and_rejoins(engine, built,
         for name, ident in [("sensor-1", "agent-1"), ("recorder", "recorder")]:
             binds = [m["Source"] for m in proj.inspect(name)["Mounts"] if m["Destination"] == compose.KEYS_MOUNT]
             assert binds == [str(tmp_path / "compose" / "keys" / ident)], (name, binds)
-        # the run reaches tick 100 (seen in the recording as it is written) ...
-        _wait_tick(data / "recording.mcap", 100, 240, proj)
+        # the run is well under way: ~100 ticks in the recording (it grows ~8 kB a tick; its size is watched,
+        # not parsed over and over — that would take a core from the run it watches) ...
+        _wait_size(data / "recording.mcap", 600_000, 240, proj)
         # ... sensor 1's process dies (SIGKILL, as a crash: `docker kill` would be a manual stop, which
         # Docker's restart policy does not undo) ...
         top = engine.docker("top", proj.container("sensor-1"), "-eo", "pid,args").stdout.splitlines()[1:]
@@ -203,32 +204,28 @@ def test_compose_up_secure_killed_sensor_is_restarted_and_rejoins(engine, built,
         # ... the restart policy restarted its container once, and it rejoined the running flock
         assert proj.inspect("sensor-1")["RestartCount"] == 1, proj.logs("sensor-1")[-3000:]
         assert "agent/1: rejoining the flock at tick" in proj.logs("sensor-1")
-    ks = _estimates(data / "recording.mcap", 1)
-    # it was down (a restart takes seconds: ≥ 8 ticks at 12.5 ticks/s) after tick 100, when it was killed ...
-    down = [(a, b) for a, b in zip(ks, ks[1:]) if b - a >= 8 and a >= 95]
-    assert down, ks
-    back = down[0][1]
+    est = {i: _estimates(data / "recording.mcap", i) for i in range(4)}
+    longest = {i: max(((b - a, a, b) for a, b in zip(ks, ks[1:])), default=(0, 0, 0)) for i, ks in est.items()}
+    # sensor 1 was down (a restart takes seconds) — longer than any gap the others had (a loaded machine
+    # makes the whole flock skip a few ticks now and then) ...
+    gap, _, back = longest[1]
+    assert gap >= 8 and all(gap > longest[i][0] for i in (0, 2, 3)), longest
     # ... and estimated again, with the flock, till the end
-    assert back < 300 and ks[-1] >= 380 and len([k for k in ks if k >= back]) >= 0.8 * (400 - back), (down, len(ks))
-    for i in (0, 2, 3):
-        assert len(_estimates(data / "recording.mcap", i)) >= 320, i
+    after = {i: len([k for k in ks if k >= back]) for i, ks in est.items()}
+    assert back < 250 and est[1][-1] >= 280 and after[1] >= 0.8 * min(after[i] for i in (0, 2, 3)), (longest, after)
+    assert all(len(est[i]) >= 0.7 * 300 for i in (0, 2, 3)), {i: len(ks) for i, ks in est.items()}
     summary = json.loads((data / "summary.json").read_text())
-    assert summary["ticks_seen"] >= 380
+    assert summary["ticks_seen"] >= 280
 
 
-def _wait_tick(path: Path, k: int, timeout: float, proj: Project) -> int:
-    """The newest world tick in the recording once it is ≥ k (the recorder flushes every 0.5 s)."""
+def _wait_size(path: Path, size: int, timeout: float, proj: Project) -> None:
+    """Until the recording being written has ``size`` bytes."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
-        if path.exists():
-            try:
-                ks = [m.k for key, m, _ in read_recording(path).messages if key == "world/tick"]
-            except Exception:   # a chunk being written: read again
-                ks = []
-            if ks and max(ks) >= k:
-                return max(ks)
+        if path.exists() and path.stat().st_size >= size:
+            return
         time.sleep(0.5)
-    raise AssertionError(f"tick {k} not reached in {timeout} s: {proj.logs('world')[-3000:]}")
+    raise AssertionError(f"the recording did not reach {size} bytes in {timeout} s: {proj.logs('world')[-3000:]}")
 
 
 def test_base_image_command_lines():
