@@ -167,10 +167,20 @@ def _health(test: list[str], config: list[str], timing: dict) -> dict:
     return {"test": ["CMD", "python", "-m", "flocktrack.health", "--quiet", *test, *config], **timing}
 
 
+def router_host(opts: ComposeOptions) -> str:
+    """The name every service dials the router by (also what its certificate must cover when secure)."""
+    return "127.0.0.1" if opts.network == "host" else "router"
+
+
 def endpoint(opts: ComposeOptions) -> str:
     """Where every service dials the router."""
-    proto = "tls" if opts.secure else "tcp"
-    return f"{proto}/127.0.0.1:{opts.router_port}" if opts.network == "host" else f"{proto}/router:{opts.router_port}"
+    return f"{'tls' if opts.secure else 'tcp'}/{router_host(opts)}:{opts.router_port}"
+
+
+def listen_endpoint(opts: ComposeOptions) -> str:
+    """Where the router listens: the host's loopback with host networking, its container's interfaces else."""
+    where = "127.0.0.1" if opts.network == "host" else "0.0.0.0"
+    return f"{'tls' if opts.secure else 'tcp'}/{where}:{opts.router_port}"
 
 
 def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> dict:
@@ -230,8 +240,7 @@ def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> d
     else:
         router_cmd = ["python", "-m", "flocktrack.router", "--config", ROUTER_CONFIG]
         if host_net or opts.router_port != ROUTER_PORT:
-            where = "127.0.0.1" if host_net else "0.0.0.0"
-            router_cmd += ["--listen", f"tcp/{where}:{opts.router_port}"]
+            router_cmd += ["--listen", listen_endpoint(opts)]
     services["router"] = service(
         "router", router_cmd, restart="unless-stopped",
         **({} if host_net else {"expose": [str(opts.router_port)]}),
@@ -243,15 +252,14 @@ def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> d
         restart=docker_restart(RestartPolicy("never")), health=member_health("recorder/0"),
         depends=after_router, configs=_mounts("meta"), volumes=[data])
     dash_host = "0.0.0.0" if (opts.dashboard_public or not host_net) else "127.0.0.1"
-    scheme, tls = ("https", ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"]) \
-        if opts.secure else ("http", [])
+    tls = ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"] if opts.secure else []
     services["dashboard"] = service(
         "dashboard", ["python", "-m", "dashboards", "--port", str(dash_port), "--host", dash_host, *scen, *common,
                       *zconf, *tls],
         restart=docker_restart(RestartPolicy("on-failure", 3)),
         # (the page of a secure run is HTTPS with a certificate of the run's CA: its token check suffices)
         health=member_health("dashboard/0",
-                             [] if opts.secure else ["--http", f"{scheme}://localhost:{dash_port}/"]),
+                             [] if opts.secure else ["--http", f"http://localhost:{dash_port}/"]),
         depends=after_router, configs=_mounts("scenario", "design"),
         # its buttons kill processes and partition the flock: on the host's loopback only unless asked
         **({} if host_net else
@@ -521,10 +529,8 @@ def stage(scenario: str | Path, out_dir: str | Path, keys_dir: str | Path, *, ne
 
     sc = parse_scenario(scenario_data(str(scenario), sets or []), str(scenario))
     opts = ComposeOptions(network=network, router_port=router_port, secure=True)
-    dial = "127.0.0.1" if network == "host" else "router"
-    ks = check_keys(keys_dir, sc.run.name, sc.sensors.n, dial, str(scenario))
-    listen = f"tls/{'127.0.0.1' if network == 'host' else '0.0.0.0'}:{router_port}"
-    return stage_keys(ks, out_dir, endpoint(opts), listen, sc.sensors.n)
+    ks = check_keys(keys_dir, sc.run.name, sc.sensors.n, router_host(opts), str(scenario))
+    return stage_keys(ks, out_dir, endpoint(opts), listen_endpoint(opts), sc.sensors.n)
 
 
 def _flags(opts: ComposeOptions, mode: str | None, sets: list[str] | None) -> str:

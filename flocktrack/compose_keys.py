@@ -22,8 +22,9 @@ as that user (``user:``), so they can read their own files and nothing else is m
 
 from __future__ import annotations
 
+import json
 import shutil
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 from .keys import (KeySet, write_private, acl, client_config, load_keys, router_config)
 
@@ -64,7 +65,7 @@ def stage_keys(ks: KeySet, out_dir: str | Path, endpoint: str, listen: str, n_se
     sensors (see the module docstring): configs that dial ``endpoint`` (the router's: listening on
     ``listen``). Returns the directories."""
     base = Path(out_dir) / "compose" / "keys"
-    inside = Path(str(PurePosixPath(KEYS_MOUNT)))
+    inside = Path(KEYS_MOUNT)
     dirs = []
     for ident in service_identities(n_sensors):
         d = base / ident
@@ -83,7 +84,7 @@ def stage_keys(ks: KeySet, out_dir: str | Path, endpoint: str, listen: str, n_se
         else:
             conf = client_config(inside, ident, password, endpoint)
         write_private(d / "zenoh.json5", f"// {ident} of run {ks.run} in its container (flocktrack compose --secure)\n"
-                                          + _json(conf) + "\n")
+                                          + json.dumps(conf, indent=2) + "\n")
         if ident == "dashboard":
             web_pem, web_key = ks.web_cert()
             shutil.copyfile(web_pem, d / "web.pem")
@@ -91,8 +92,3 @@ def stage_keys(ks: KeySet, out_dir: str | Path, endpoint: str, listen: str, n_se
         dirs.append(d)
     return dirs
 
-
-def _json(conf: dict) -> str:
-    import json
-
-    return json.dumps(conf, indent=2)

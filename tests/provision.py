@@ -74,16 +74,25 @@ def chromium() -> Path:
     """Debian's Chromium, installed with apt-get when we are root and it is absent."""
     if CHROMIUM.exists():
         return CHROMIUM
-    how = "run `sudo apt-get install -y chromium` to enable the browser tests"
+    _apt_install(["chromium"], f"{CHROMIUM} not found", "the dashboard's browser tests",
+                 CHROMIUM.exists)
+    return CHROMIUM
+
+
+def _apt_install(packages: list[str], missing: str, needed_by: str, installed) -> None:
+    """Install Debian ``packages`` with apt-get (as root), or raise :class:`MissingDependencyError` saying
+    how to enable ``needed_by``; ``installed()`` says whether the install produced what is needed."""
+    names = " ".join(packages)
+    how = f"run `sudo apt-get install -y {names}` to enable {needed_by}"
     if os.geteuid() != 0 or not shutil.which("apt-get"):
-        raise MissingDependencyError(f"{CHROMIUM} not found and not root with apt-get to install it: {how}")
-    _say("installing Debian's chromium for the dashboard's browser tests (once, about a minute)")
+        raise MissingDependencyError(f"{missing} and not root with apt-get to install it: {how}")
+    _say(f"installing Debian's {names} for {needed_by} (once, about a minute)")
     ok, err = _run(["apt-get", "update", "-qq"], 600)
     if ok:
-        ok, err = _run(["apt-get", "install", "-y", "-qq", "chromium"], 900)
-    if not ok or not CHROMIUM.exists():
-        raise MissingDependencyError(f"apt-get could not install chromium ({err.strip().splitlines()[-1] if err.strip() else 'no output'}): {how}")
-    return CHROMIUM
+        ok, err = _run(["apt-get", "install", "-y", "-qq", *packages], 900)
+    if not ok or not installed():
+        raise MissingDependencyError(f"apt-get could not install {names} "
+                                     f"({err.strip().splitlines()[-1] if err.strip() else 'no output'}): {how}")
 
 
 @cache
@@ -114,17 +123,9 @@ def docker_engine() -> Path:
     dockerd = shutil.which("dockerd")
     if dockerd and shutil.which("docker") and shutil.which("mmdebstrap"):
         return Path(dockerd)
-    how = "run `sudo apt-get install -y docker.io mmdebstrap` to enable the container tests"
-    if os.geteuid() != 0 or not shutil.which("apt-get"):
-        raise MissingDependencyError(f"dockerd/mmdebstrap not found and not root with apt-get to install them: {how}")
-    _say("installing Debian's docker.io and mmdebstrap for the container tests (once, about a minute)")
-    ok, err = _run(["apt-get", "update", "-qq"], 600)
-    if ok:
-        ok, err = _run(["apt-get", "install", "-y", "-qq", "docker.io", "mmdebstrap"], 900)
-    dockerd = shutil.which("dockerd") or (Path("/usr/sbin/dockerd").exists() and "/usr/sbin/dockerd")
-    if not ok or not dockerd:
-        raise MissingDependencyError(f"apt-get could not install docker.io ({err.strip().splitlines()[-1] if err.strip() else 'no output'}): {how}")
-    return Path(dockerd)
+    _apt_install(["docker.io", "mmdebstrap"], "dockerd/mmdebstrap not found", "the container tests",
+                 lambda: bool(shutil.which("dockerd") or Path("/usr/sbin/dockerd").exists()))
+    return Path(shutil.which("dockerd") or "/usr/sbin/dockerd")
 
 
 @cache

@@ -133,8 +133,13 @@ class Project:
             assert not left, (what, left)
 
 
-def _estimates(path: Path, agent: int) -> list[int]:
-    return sorted(m.k for key, m, _ in read_recording(path).messages if key == f"agent/{agent}/estimate")
+def _estimates(path: Path, n: int) -> dict[int, list[int]]:
+    """Each sensor's estimated ticks in the recording (read once)."""
+    est: dict[int, list[int]] = {i: [] for i in range(n)}
+    for key, m, _ in read_recording(path).messages:
+        if key.startswith("agent/") and key.endswith("/estimate") and m.src in est:
+            est[m.src].append(m.k)
+    return {i: sorted(ks) for i, ks in est.items()}
 
 
 def test_compose_up_lockstep_equals_inproc_and_down_leaves_nothing(engine, built, tmp_path):
@@ -204,7 +209,7 @@ def test_compose_up_secure_killed_sensor_is_restarted_and_rejoins(engine, built,
         # ... the restart policy restarted its container once, and it rejoined the running flock
         assert proj.inspect("sensor-1")["RestartCount"] == 1, proj.logs("sensor-1")[-3000:]
         assert "agent/1: rejoining the flock at tick" in proj.logs("sensor-1")
-    est = {i: _estimates(data / "recording.mcap", i) for i in range(4)}
+    est = _estimates(data / "recording.mcap", 4)
     longest = {i: max(((b - a, a, b) for a, b in zip(ks, ks[1:])), default=(0, 0, 0)) for i, ks in est.items()}
     # sensor 1 was down (a restart takes seconds) — longer than any gap the others had (a loaded machine
     # makes the whole flock skip a few ticks now and then) ...
