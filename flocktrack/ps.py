@@ -49,12 +49,6 @@ def runs_on(endpoint: str, config_file: str | None = None, run: str | None = Non
     seen: dict[str, RunSeen] = {}
     try:
         scope = f"ft/{run}" if run else "ft/*"
-        for reply in session.liveliness().get(f"{scope}/alive/**", timeout=2.0):
-            if reply.ok is None:
-                continue
-            parts = str(reply.ok.key_expr).split("/", 3)   # ft / <run> / alive / <member>
-            if len(parts) == 4:
-                seen.setdefault(parts[1], RunSeen(parts[1], endpoint)).members.add(parts[3])
         ticks: dict[str, int] = {}
 
         def on_tick(sample) -> None:
@@ -67,6 +61,14 @@ def runs_on(endpoint: str, config_file: str | None = None, run: str | None = Non
         sub = session.declare_subscriber(f"{scope}/world/tick", on_tick)
         time.sleep(listen_s)
         sub.undeclare()
+        # the members after the ticks: a world declares its token before its first tick, so a run seen
+        # ticking is listed with its world (asked first, a run just starting showed ticks but no world)
+        for reply in session.liveliness().get(f"{scope}/alive/**", timeout=2.0):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).split("/", 3)   # ft / <run> / alive / <member>
+            if len(parts) == 4:
+                seen.setdefault(parts[1], RunSeen(parts[1], endpoint)).members.add(parts[3])
         for run, k in ticks.items():
             if run in seen:
                 seen[run].tick = k
