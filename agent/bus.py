@@ -51,11 +51,12 @@ class BusStats:
     skipped: int = 0  #: not decoded: a prefilter said the role would ignore them
     dropped: Counter = field(default_factory=Counter)
     handler_errors: int = 0
+    held: int = 0     #: addressed payloads held until their receiver's subscription reached us (ZenohBus)
 
     def as_dict(self) -> dict:
         return {"sent": self.sent, "sent_by_key": dict(sorted(self.sent_by_key.items())),
                 "received": self.received, "skipped": self.skipped, "dropped": dict(self.dropped),
-                "handler_errors": self.handler_errors}
+                "handler_errors": self.handler_errors, "held": self.held}
 
 
 Prefilter = Callable[[str, bytes], bool]
@@ -203,6 +204,7 @@ def zenoh_config(connect: str | None = None, listen: str | None = None, mode: st
 
 #: put into a bus's queue to wake its poll (see :func:`wake_all`)
 _WAKE = ("", b"", ("wake", None))
+HELD_PER_KEY = 16   #: addressed payloads held per key at most (a receiver that never comes: oldest dropped)
 _LIVE: "weakref.WeakSet[ZenohBus]" = weakref.WeakSet()
 
 
@@ -242,6 +244,8 @@ class ZenohBus:
         self.stats = BusStats()
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self._pubs: dict[str, object] = {}
+        self._matched: dict[str, bool] = {}        # addressed keys: does the receiver's subscription reach us?
+        self._held: dict[str, deque] = {}          # addressed payloads put while it did not (in order)
         self._decls: list = []
         self._closed = False
         _LIVE.add(self)
@@ -251,7 +255,11 @@ class ZenohBus:
         self.publish_raw(key, wire.encode(msg))
 
     def publish_raw(self, key: str, data: bytes) -> None:
-        self._publisher(key).put(data)
+        pub = self._publisher(key)
+        if not self._matched.get(key, True) and not self._now_matched(key, pub):
+            self._hold(key, data)
+            return
+        pub.put(data)
         self.stats.sent += 1
         self.stats.sent_by_key[key] += 1
 
@@ -261,7 +269,51 @@ class ZenohBus:
             z = self._zenoh
             pub = self._pubs[key] = self.session.declare_publisher(
                 self.prefix + key, congestion_control=z.CongestionControl.BLOCK)
+            if wire.addressed(key):
+                self._watch_matching(key, pub)
         return pub
+
+    # ------------------------------------------------------------------ addressed payloads: held until matched
+    # A put is dropped — at the publisher, or at a router that has not heard of the subscription yet —
+    # when the receiver's subscription has not reached this session's router. Observers' keys have the
+    # recorder and the world, whose subscriptions precede everyone's first put, but an addressed key
+    # (``agent/<i>/to/<j>/xchg``) has one subscriber, j itself: in a mesh of routers (or when j has just
+    # restarted) j's declaration can still be on its way when i puts its first payload to j, and lockstep
+    # would then wait out a deadline for a payload that was never sent. So an addressed key's payloads
+    # are held, in order, until its publisher matches a subscriber (Zenoh's matching listener), then sent.
+
+    def _watch_matching(self, key: str, pub) -> None:
+        self._matched[key] = False
+        q = self._q
+
+        def on_status(status) -> None:
+            q.put((key, bool(status.matching), ("matched", None)))
+
+        self._decls.append(pub.declare_matching_listener(self._in_order(on_status)))
+
+    def _now_matched(self, key: str, pub) -> bool:
+        """Held keys ask Zenoh once more before holding (a listener event may still be queued)."""
+        if pub.matching_status.matching:
+            self._on_matching(key, True)
+            return True
+        return False
+
+    def _hold(self, key: str, data: bytes) -> None:
+        q = self._held.setdefault(key, deque(maxlen=HELD_PER_KEY))
+        if len(q) == q.maxlen:
+            self.stats.dropped["unmatched"] += 1     # the oldest held payload gives way
+        q.append(data)
+        self.stats.held += 1
+
+    def _on_matching(self, key: str, matching: bool) -> None:
+        self._matched[key] = matching
+        held = self._held.pop(key, None) if matching else None
+        if held:
+            pub = self._pubs[key]
+            for data in held:
+                pub.put(data)
+                self.stats.sent += 1
+                self.stats.sent_by_key[key] += 1
 
     def await_subscriber(self, key: str, timeout_s: float) -> bool:
         """Wait until someone subscribes to what we would put on ``key`` (a put before the routes reach
@@ -312,23 +364,24 @@ class ZenohBus:
             item = self._q.get(timeout=timeout) if timeout > 0 else self._q.get_nowait()
         except queue.Empty:
             return 0
-        while True:
-            if item is _WAKE:
-                return n
+        while item is not _WAKE:
             key, data, handler = item
-            if isinstance(handler, tuple) and handler[0] == "filtered":
+            if not isinstance(handler, tuple):
+                deliver(self.stats, [handler], key, data)
+            elif handler[0] == "matched":      # a held key's publisher matched (or lost) its subscriber
+                self._on_matching(key, data)
+                n -= 1
+            elif handler[0] == "filtered":
                 if handler[2](key, data):
                     deliver(self.stats, [handler[1]], key, data)
                 else:
                     self.stats.skipped += 1
-            elif isinstance(handler, tuple):
+            else:
                 try:
                     handler[1](key, data)
                 except Exception:
                     self.stats.handler_errors += 1
                     log.exception("%s callback failed on %s", handler[0], key)
-            else:
-                deliver(self.stats, [handler], key, data)
             n += 1
             if n >= max_messages:
                 return n
@@ -336,6 +389,7 @@ class ZenohBus:
                 item = self._q.get_nowait()
             except queue.Empty:
                 return n
+        return n
 
     # ------------------------------------------------------------------ membership
     def declare_token(self, name: str):
