@@ -99,7 +99,27 @@ def _uav_target(sc: Scenario) -> TargetRole:
 def _uav_sensor(sc: Scenario, i: int, design: dict[str, Any], rejoin: bool) -> Role:
     from .roles.uav import UavRole
 
+    if sc.uav.fusion_mode == "distributed":
+        return _uav_fusion_node(sc, i, rejoin)
     return UavRole(i, sc.run.ticks, sc.run.T, uav_stream(sc))
+
+
+def _uav_fusion_node(sc: Scenario, i: int, rejoin: bool) -> Role:
+    """UAV i of ``[fusion] mode = "distributed"``: its own robust window, agreed by consensus ADMM."""
+    from .estimators.admm_fusion import AdmmFusionNode
+    from .roles.uav import UavFusionNodeRole, UavTrack, track_records
+
+    u = sc.uav.uav
+    R, G = np.eye(2) * u.sigma_rel ** 2, np.eye(2) * u.sigma_gps ** 2
+    mhe = next(iter(sc.uav.make_estimators(sc.source).values()))   # the [fusion] estimator: its keys
+    track = UavTrack(uav_stream(sc), i, sc.run.T)
+    a = sc.uav.admm()
+    node = AdmmFusionNode(i, track_records(track, R, G), W=mhe.W, q=mhe.q, iterations=a["iterations"], rho=a["rho"],
+                          c=mhe.c, reject=mhe.reject, scale_window=mhe.scale.size, dt_floor=mhe.dt_floor,
+                          whitening=mhe.window.whitening, robust_motion=not mhe.quad_motion, T=sc.run.T)
+    return UavFusionNodeRole(i, sc.run.ticks, sc.run.T, node, track, LinearSensor(sc.C_of(i), R),
+                             rng_for(sc.run.seed, "agent", i, "measurement"), rejoin, seed=sc.run.seed,
+                             catch_up=sc.run.mode == "realtime")
 
 
 @dataclass(frozen=True)

@@ -319,6 +319,9 @@ def _build(cls, table: dict | None, where: str):
     return cls(**kw)
 
 
+FUSION_MODE_KEYS = ("mode", "admm_iterations", "admm_rho")   #: [fusion] keys of the mode, not of the estimator
+
+
 @dataclass(frozen=True)
 class CarrilloScenario:
     """Everything ``scenarios/carrillo_uav.toml`` specifies (see that file for every key)."""
@@ -336,6 +339,16 @@ class CarrilloScenario:
 
         return UavRelativeSim(replace(self.uav, **uav_overrides), self.target)
 
+    @property
+    def fusion_mode(self) -> str:
+        """``[fusion] mode``: "central" (one fusion process, the default) or "distributed" (each UAV fuses its
+        own measurements and agrees with the others by consensus ADMM, :mod:`agent.estimators.admm_fusion`)."""
+        return str(self.fusion.get("mode", "central"))
+
+    def admm(self) -> dict:
+        """``[fusion] admm_iterations`` (per tick) and ``admm_rho`` of the distributed mode."""
+        return {"iterations": int(self.fusion.get("admm_iterations", 8)), "rho": float(self.fusion.get("admm_rho", 0.05))}
+
     def make_estimators(self, source: str = "scenario") -> dict:
         """The fusion role's estimators from ``[fusion]`` and ``[baselines]``: {<[fusion] estimator>: …,
         "bls": …, "kalman_q<q>": …, "robust_kalman_q<q>": …} (fresh objects). The fusion estimator is the
@@ -343,7 +356,7 @@ class CarrilloScenario:
         from .estimators.fusion_baselines import BatchLeastSquares, KalmanCV, RobustKalmanCV
         from .estimators.registry import build_fusion
 
-        name, son = build_fusion(self.fusion, source)
+        name, son = build_fusion({k: v for k, v in self.fusion.items() if k not in FUSION_MODE_KEYS}, source)
         W = son.W
         b = self.baselines
         out = {name: son,

@@ -579,6 +579,7 @@ def parse_uav_scenario(data: dict, source: str) -> Scenario:
         key = msg[1:msg.index("]")] if msg.startswith("[") and "]" in msg else "-"
         raise ScenarioError(source, key, msg, "see scenarios/carrillo_uav.toml for every key") from None
     cfg.make_estimators(source)  # [fusion]: the named fusion estimator and its keys (ScenarioError names them)
+    _check_fusion_mode(cfg, source)
     T = float(T)
     if not T > 0 or not cfg.duration > 0:
         raise ScenarioError(source, "run.T", "T and duration must be > 0")
@@ -592,11 +593,33 @@ def parse_uav_scenario(data: dict, source: str) -> Scenario:
         sensors=SensorsCfg(n=n, C=[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], R=[[sigma ** 2, 0.0], [0.0, sigma ** 2]],
                            positions=[[0.0, 0.0]] * n, motion="static"),
         estimator=EstimatorCfg(name="none", rounds=0),
-        topology=TopologyCfg(kind="schedule", dwell_ticks=1, graphs=[GraphCfg(edges=[], b=[1.0] * n)]),
+        # distributed fusion: every UAV hears every other (their consensus rounds); central: no links
+        topology=TopologyCfg(kind="schedule", dwell_ticks=1, graphs=[GraphCfg(
+            edges=[[i, j] for i in range(n) for j in range(i + 1, n)] if cfg.fusion_mode == "distributed" else [],
+            b=[1.0] * n)]),
         source=source, uav=cfg, data=data)
     if sc.run.mode not in ("lockstep", "realtime"):
         raise ScenarioError(source, "run.mode", f"expected \"lockstep\" or \"realtime\", got {sc.run.mode!r}")
     return validate(sc)
+
+
+def _check_fusion_mode(cfg, source: str) -> None:
+    """``[fusion] mode`` and its ADMM keys (agent.models_uav.CarrilloScenario.fusion_mode)."""
+    mode = cfg.fusion.get("mode", "central")
+    if mode not in ("central", "distributed"):
+        raise ScenarioError(source, "fusion.mode", f"expected \"central\" or \"distributed\", got {mode!r}",
+                            f"{did_you_mean(str(mode), ('central', 'distributed'))}write mode = \"central\" (one fusion "
+                            "process) or mode = \"distributed\" (consensus ADMM between the UAVs)")
+    if mode == "distributed" and cfg.fusion.get("estimator") != "robust_mhe":
+        raise ScenarioError(source, "fusion.estimator", "the distributed mode runs the robust moving-horizon fusion",
+                            "write estimator = \"robust_mhe\" (scenarios/carrillo_robust.toml)")
+    it, rho = cfg.fusion.get("admm_iterations", 8), cfg.fusion.get("admm_rho", 0.05)
+    if isinstance(it, bool) or not isinstance(it, int) or not 1 <= it <= 100:
+        raise ScenarioError(source, "fusion.admm_iterations", f"expected a whole number in 1…100, got {it!r}",
+                            "e.g. admm_iterations = 8 (ADMM iterations, i.e. exchange rounds, per tick)")
+    if isinstance(rho, bool) or not isinstance(rho, (int, float)) or not (math.isfinite(rho) and rho > 0):
+        raise ScenarioError(source, "fusion.admm_rho", f"expected a finite number > 0, got {rho!r}",
+                            "e.g. admm_rho = 0.05 (the ADMM penalty, per m² of the states)")
 
 
 def _estimator_section(table: Any, source: str) -> EstimatorCfg:

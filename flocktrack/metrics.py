@@ -82,6 +82,10 @@ class MetricsCollector:
             self._est.setdefault(msg.k, {})[msg.src] = msg.x
             if msg.aux:
                 self._eps.setdefault(msg.k, {})[msg.src] = msg.aux
+                t, x = msg.aux.get("t_newest"), msg.aux.get("newest")
+                if t is not None and x is not None and t.shape == (1,) and x.shape == (4,):
+                    # a distributed-fusion UAV's estimate at its window's newest node, scored like the fusion's
+                    self._fusion.setdefault(f"admm/{msg.src}", []).append((float(t[0]), float(t[0]), x, x))
         elif isinstance(msg, State) and key == "target/state":
             self._target_pos[msg.k] = msg.pos
             if msg.w is not None:

@@ -7,13 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.bus import LocalBus, ZenohBus
+from agent.bus import LocalBus
 from agent.scenario import load_scenario, parse_scenario
-from agent.wire import Control
 from agent.scenario import scenario_data
 from flocktrack.record import read_recording
 from flocktrack.run import run_zenoh_to_dir
 from topology.world import build_world
+
+from control_plan import ControlPlan
 
 SCEN = Path(__file__).resolve().parents[1] / "scenarios"
 
@@ -74,29 +75,18 @@ def test_controls_end_to_end_over_zenoh(tmp_path):
     plan = {20: ("link_drop", {"a": 0, "b": 1}), 40: ("partition", {"groups": [0.0] * 5 + [1.0] * 5}),
             60: ("heal", {}), 70: ("kill", {"agent": 3}), 100: ("restart", {"agent": 3}),
             110: ("outlier_burst", {"agent": 4, "ticks": 5, "magnitude": 50.0}), 120: ("pause", {})}
-    state = {"bus": None, "k": -1, "sent": set(), "paused_at": None}
+    ctl = ControlPlan(plan)
 
     def hook(launcher):
-        if state["bus"] is None:
-            state["bus"] = ZenohBus(launcher.run, connect=launcher.endpoint)
-            state["bus"].subscribe("world/tick", lambda key, m: state.__setitem__("k", max(state["k"], m.k)))
-        bus = state["bus"]
-        bus.poll(0)
-        for k, (verb, args) in plan.items():
-            if state["k"] >= k and k not in state["sent"]:
-                bus.publish(f"control/{verb}", Control(verb=verb, args=args))
-                state["sent"].add(k)
-                if verb == "pause":
-                    state["paused_at"] = time.monotonic()
-        if state["paused_at"] is not None and time.monotonic() - state["paused_at"] > 1.5:
-            bus.publish("control/resume", Control(verb="resume"))
-            state["paused_at"] = None
+        ctl(launcher)
+        paused = ctl.sent_at.get("pause")
+        if paused is not None and "resume" not in ctl.sent_at and time.monotonic() - paused > 1.5:
+            ctl.send("resume")
 
     try:
         summary, info = run_zenoh_to_dir(sc, data, tmp_path, quiet=True, on_poll=hook, timeout_s=300)
     finally:
-        if state["bus"] is not None:
-            state["bus"].close()
+        ctl.close()
     assert info["rc"] == 0
     rec = read_recording(tmp_path / "recording.mcap")
     events = {m.verb: m.k for key, m, _ in rec.messages if key == "world/event"}

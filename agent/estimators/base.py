@@ -96,6 +96,10 @@ class Estimator(ABC):
         """Current error covariance (or Riccati matrix) if the estimator has one."""
         return None
 
+    def report(self) -> dict[str, np.ndarray]:
+        """Vectors published beside the estimate (``Estimate.aux``) after :meth:`finish` (default none)."""
+        return {}
+
     def payload_shapes(self) -> dict[str, tuple[int, ...]]:
         """Expected shape of each payload entry (used to drop malformed neighbour payloads)."""
         return {}

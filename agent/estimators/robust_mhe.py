@@ -59,7 +59,7 @@ from .son_layout import time_order
 from .spec import FusionSpec
 from .sum_of_norms import RelativeMeasurement, Result, SumOfNormsEstimator, check_window_keys, whitener
 
-__all__ = ["HUBER_C", "MAD_TO_SIGMA", "ArrivalCost", "RobustMHE", "RobustScale"]
+__all__ = ["HUBER_C", "MAD_TO_SIGMA", "ArrivalCost", "RobustMHE", "RobustScale", "fold_node"]
 
 HUBER_C = 1.345          #: Huber's constant: 95 % asymptotic efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826    #: 1/Φ⁻¹(3/4): the MAD of a Gaussian times this is its σ
@@ -246,40 +246,9 @@ class RobustMHE(SumOfNormsEstimator):
         """Node 0 of the last solve has left the window: its posterior (module doc) becomes the next
         arrival cost, and its normalised relative residual goes into the scale estimate."""
         res = self._last
-        d = self._last_delta
-        s_hat = res.target[0]
-        prior = self._prior_at_oldest(rec)
-        has_u = rec.agent != 0
-        nv = 6 if has_u else 4
-        Lam = np.zeros((nv, nv))
-        y0 = np.zeros(nv)
-        o = nv - 4                            # offset of [p, v] in y
-        Lam[o:, o:] = np.linalg.inv(prior.P)
-        y0[o:] = prior.xbar
-        G = np.zeros((4 if has_u else 2, nv))
-        zz = np.empty(G.shape[0])
-        G[0:2, o:o + 2] = Wr                  # relative row (4): Wr (p − u) = Wr z
-        zz[0:2] = Wr @ rec.z
-        if has_u:
-            G[0:2, 0:2] = -Wr
-            G[2:4, 0:2] = Wg                  # GPS row (3): Wg u = Wg gps
-            zz[2:4] = Wg @ rec.gps
-            Lam[0:2, 0:2] = 1e-12 * np.eye(2)  # u has no prior (keeps Λ⁺ regular if both rows are rejected)
-            y0[0:2] = res.uav[0]
-        y_hat = np.concatenate([res.uav[0], s_hat]) if has_u else s_hat.copy()
-        r = zz - G @ y_hat
-        theta = huber_curvature(r, d)
-        force = huber_psi(r, d) * (1.0 - theta)
-        force[np.abs(r) > self.reject * self.scale.sigma] = 0.0   # gross outliers leave no trace
-        yp, Lp = information_update(y0, Lam, G, zz, theta, force)
-        Sp = np.linalg.inv(Lp)
-        self._post = (float(rec.t), yp[o:], 0.5 * (Sp[o:, o:] + Sp[o:, o:].T))
-        # the relative row's residual at the posterior, normalised by its variance under the model
-        g = G[0:2]
-        h = np.einsum("ij,jk,ik->i", g, Sp, g)
-        rf = zz[0:2] - g @ yp + h * force[0:2]   # a rejected row: its residual without its own pull
-        var = np.where(theta[0:2] > 0, 1.0 - h, 1.0 + h)
-        nu = rf / np.sqrt(np.maximum(var, 1e-6))
+        mean, cov, nu = fold_node(self._prior_at_oldest(rec), rec, Wr, Wg, res.target[0], res.uav[0],
+                                  self._last_delta, self.reject * self.scale.sigma)
+        self._post = (float(rec.t), mean, cov)
         self.scale.push(nu)
         if self.online:
             self.set_delta(self.scale.delta)
@@ -289,6 +258,46 @@ class RobustMHE(SumOfNormsEstimator):
         if self._post is not None:
             return self._predicted_to(rec.t)
         return self._initial(rec.target_position)
+
+
+def fold_node(prior: ArrivalCost, rec: RelativeMeasurement, Wr: np.ndarray, Wg: np.ndarray, s_hat: np.ndarray,
+              u_hat: np.ndarray, delta: float, gross: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The posterior of a node leaving the window (module doc, "The arrival cost"): its prior ``prior``
+    (the arrival cost it had), its relative row (4) and GPS row (3) (whitened by ``Wr``, ``Wg``) with their
+    Huber curvature and force at the window solution (target state ``s_hat``, agent position ``u_hat``) for
+    threshold ``delta``; rows beyond ``gross`` leave no trace. Returns (mean (4,), covariance (4, 4)) of
+    [p, v], and the relative row's normalised residual ν̃ (2,) for the scale estimate."""
+    has_u = rec.agent != 0
+    nv = 6 if has_u else 4
+    Lam = np.zeros((nv, nv))
+    y0 = np.zeros(nv)
+    o = nv - 4                            # offset of [p, v] in y
+    Lam[o:, o:] = np.linalg.inv(prior.P)
+    y0[o:] = prior.xbar
+    G = np.zeros((4 if has_u else 2, nv))
+    zz = np.empty(G.shape[0])
+    G[0:2, o:o + 2] = Wr                  # relative row (4): Wr (p − u) = Wr z
+    zz[0:2] = Wr @ rec.z
+    if has_u:
+        G[0:2, 0:2] = -Wr
+        G[2:4, 0:2] = Wg                  # GPS row (3): Wg u = Wg gps
+        zz[2:4] = Wg @ rec.gps
+        Lam[0:2, 0:2] = 1e-12 * np.eye(2)  # u has no prior (keeps Λ⁺ regular if both rows are rejected)
+        y0[0:2] = u_hat
+    y_hat = np.concatenate([u_hat, s_hat]) if has_u else np.array(s_hat, float)
+    r = zz - G @ y_hat
+    theta = huber_curvature(r, delta)
+    force = huber_psi(r, delta) * (1.0 - theta)
+    force[np.abs(r) > gross] = 0.0        # gross outliers leave no trace
+    yp, Lp = information_update(y0, Lam, G, zz, theta, force)
+    Sp = np.linalg.inv(Lp)
+    # the relative row's residual at the posterior, normalised by its variance under the model
+    g = G[0:2]
+    h = np.einsum("ij,jk,ik->i", g, Sp, g)
+    rf = zz[0:2] - g @ yp + h * force[0:2]   # a rejected row: its residual without its own pull
+    var = np.where(theta[0:2] > 0, 1.0 - h, 1.0 + h)
+    nu = rf / np.sqrt(np.maximum(var, 1e-6))
+    return yp[o:], 0.5 * (Sp[o:, o:] + Sp[o:, o:].T), nu
 
 
 # ============================================================================= the fusion-role plug-in

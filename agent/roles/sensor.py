@@ -209,10 +209,7 @@ class SensorRole(Role):
             return
         self.link.release(self.k)
         b = float(tick.b[self.i])
-        y = self.link.perturb(self.sensor.measure(truth.x, b, self.rng))
-        v = getattr(self.sensor, "last_v", None)
-        self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy(),
-                                                  v=None if v is None else np.array(v, float)))
+        y = self._measure(tick, truth, b)
         links = tick.links[self.i]
         self._nbrs = [j for j in links if tick.alive[j] and j not in self._dead]
         # range-based link dropping at the transport: only the sensors that hear us get our payloads
@@ -227,6 +224,15 @@ class SensorRole(Role):
                                    delta_max=tick.delta_max), y)
         self.r = 0
         self._open_round()
+
+    def _measure(self, tick: Tick, truth: Truth, b: float) -> np.ndarray:
+        """Step 1: yᵢ from the truth with this sensor's noise (and the link emulator's faults), published as
+        ``meas``; returned for the estimator."""
+        y = self.link.perturb(self.sensor.measure(truth.x, b, self.rng))
+        v = getattr(self.sensor, "last_v", None)
+        self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy(),
+                                                  v=None if v is None else np.array(v, float)))
+        return y
 
     def _reinitialise(self) -> None:
         """Rejoining: restart the filter from the neighbours' (else anyone's) last estimates."""
@@ -267,10 +273,11 @@ class SensorRole(Role):
         self.est.finish()
         x_next, P = self.est.x, self.est.P
         eps = getattr(self.est, "last_channel_noise", None) or {}
+        aux = {f"eps_{j}": np.asarray(e, float) for j, e in sorted(eps.items())}
+        aux.update(self.est.report())
         self.publish(f"agent/{self.i}/estimate",
                      Estimate(src=self.i, k=self.k, x=self._prior, x_next=x_next.copy(),
-                              P=None if P is None else np.array(P, float), name=type(self.est).__name__,
-                              aux={f"eps_{j}": np.asarray(e, float) for j, e in sorted(eps.items())}))
+                              P=None if P is None else np.array(P, float), name=type(self.est).__name__, aux=aux))
         if self.controller is not None:
             d, tick = self.pos_dims, self._ticks[self.k]
             nbr_pos = np.array([tick.positions[j] for j in self._nbrs]).reshape(-1, self.q.size)
