@@ -48,27 +48,19 @@ class BusStats:
     sent: int = 0
     sent_by_key: Counter = field(default_factory=Counter)
     received: int = 0
-    skipped: int = 0  #: not decoded: a prefilter said the role would ignore them
     dropped: Counter = field(default_factory=Counter)
     handler_errors: int = 0
     held: int = 0     #: addressed payloads held until their receiver's subscription reached us (ZenohBus)
 
     def as_dict(self) -> dict:
         return {"sent": self.sent, "sent_by_key": dict(sorted(self.sent_by_key.items())),
-                "received": self.received, "skipped": self.skipped, "dropped": dict(self.dropped),
+                "received": self.received, "dropped": dict(self.dropped),
                 "handler_errors": self.handler_errors, "held": self.held}
 
 
-Prefilter = Callable[[str, bytes], bool]
-
 
 class Bus(Protocol):
-    """What a role needs from a transport.
-
-    ``subscribe(..., prefilter=f)``: an optional cheap test on the raw bytes (see :func:`wire.peek`)
-    that lets a transport skip decoding messages the handler would ignore anyway. It must never
-    reject a message the handler would act on; a bus may ignore it (LocalBus decodes once for all).
-    """
+    """What a role needs from a transport."""
 
     stats: BusStats
 
@@ -76,7 +68,7 @@ class Bus(Protocol):
 
     def publish_raw(self, key: str, data: bytes) -> None: ...
 
-    def subscribe(self, pattern: str, handler: Handler, prefilter: Prefilter | None = None) -> None: ...
+    def subscribe(self, pattern: str, handler: Handler) -> None: ...
 
     def close(self) -> None: ...
 
@@ -130,7 +122,7 @@ class LocalBus:
         self.stats.sent_by_key[key] += 1
         self._queue.append((key, data))
 
-    def subscribe(self, pattern: str, handler: Handler, prefilter: Prefilter | None = None) -> None:
+    def subscribe(self, pattern: str, handler: Handler) -> None:
         self._subs.append((pattern, handler))
         self._routes.clear()
 
@@ -327,13 +319,12 @@ class ZenohBus:
             time.sleep(0.02)
         return True
 
-    def subscribe(self, pattern: str, handler: Handler, prefilter: Prefilter | None = None) -> None:
+    def subscribe(self, pattern: str, handler: Handler) -> None:
         n = len(self.prefix)
         q = self._q
-        target = handler if prefilter is None else ("filtered", handler, prefilter)
 
         def on_sample(sample) -> None:
-            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), target))
+            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), handler))
 
         self._decls.append(self.session.declare_subscriber(self.prefix + pattern, self._in_order(on_sample)))
 
@@ -371,11 +362,6 @@ class ZenohBus:
             elif handler[0] == "matched":      # a held key's publisher matched (or lost) its subscriber
                 self._on_matching(key, data)
                 n -= 1
-            elif handler[0] == "filtered":
-                if handler[2](key, data):
-                    deliver(self.stats, [handler[1]], key, data)
-                else:
-                    self.stats.skipped += 1
             else:
                 try:
                     handler[1](key, data)

@@ -732,38 +732,6 @@ def int_list(v: Any, lo: int = 0, hi: int = MAX_LIST_LEN) -> list[int] | None:
     return out
 
 
-def peek(data: bytes, names: tuple[str, ...] = ("k", "r"), max_fields: int = 6) -> dict[str, Any]:
-    """Read a few leading scalar fields without decoding (or validating) the message — for cheap
-    routing decisions (a sensor skipping a non-neighbour's payload). Returns {} on anything odd;
-    never raises."""
-    try:
-        up = msgpack.Unpacker(raw=False, max_buffer_size=MAX_MESSAGE_BYTES)
-        up.feed(bytes(data[:256]))
-        n = up.read_map_header()
-        out: dict[str, Any] = {}
-        for _ in range(min(n, max_fields)):
-            name = up.unpack()
-            val = up.unpack()
-            if name in names and isinstance(val, int) and not isinstance(val, bool):
-                out[name] = val
-                if len(out) == len(names):
-                    break
-        return out
-    except Exception:
-        return {}
-
-
-def peek_round(key: str, data: bytes) -> tuple[int, int, int] | None:
-    """(sender, k, r) of an exchange payload on ``agent/<sender>/[to/<j>/]xchg``, read without decoding it (see
-    :func:`peek`); None when unsure."""
-    try:
-        j = int(key.split("/")[1])
-    except (IndexError, ValueError):
-        return None
-    h = peek(data)
-    return (j, h["k"], h["r"]) if "k" in h and "r" in h else None
-
-
 def key_for(msg: Message, role: str) -> str:
     """Relative key a role publishes a message on (``role`` is 'agent', 'target', 'world', 'fusion')."""
     if role == "agent":

@@ -194,12 +194,6 @@ def test_the_launchers_verbs_name_one_sensor():
             wire.command("restart", args, n=4)
 
 
-def test_peek_round_reads_sender_tick_and_round_without_decoding():
-    data = wire.encode(wire.Xchg(src=3, k=12, r=4, payload={"a": np.zeros(2)}))
-    assert wire.peek_round("agent/3/xchg", data) == (3, 12, 4)
-    assert wire.peek_round("agent/x/xchg", data) is None and wire.peek_round("agent/3/xchg", b"\x01") is None
-
-
 def test_an_addressed_exchange_payload_is_its_senders_and_unseen_by_observers():
     """``agent/<i>/to/<j>/xchg``: sensor i's payload for sensor j's inbox — owned by i like ``agent/i/xchg``,
     matched by j's inbox and by no observer pattern (the observers get each payload once, unaddressed)."""
@@ -207,7 +201,6 @@ def test_an_addressed_exchange_payload_is_its_senders_and_unseen_by_observers():
 
     data = wire.encode(wire.Xchg(src=3, k=12, r=4, payload={"a": np.zeros(2)}))
     assert wire.xchg_key(3, 5) == "agent/3/to/5/xchg" and wire.decode("agent/3/to/5/xchg", data).src == 3
-    assert wire.peek_round("agent/3/to/5/xchg", data) == (3, 12, 4)
     for key, reason in (("agent/4/to/5/xchg", "not_owner"), ("agent/3/to/3/xchg", "bad_key"),
                         ("agent/3/to/x/xchg", "bad_key"), ("agent/3/to/5/estimate", "bad_key"),
                         ("agent/3/via/5/xchg", "bad_key"), ("agent/3/to/-1/xchg", "bad_key")):

@@ -65,7 +65,6 @@ class SensorRole(Role):
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
         bus.subscribe("target/truth", self._on_truth)
-        # (no pre-decode filter: the inbox holds only what neighbours addressed to us, nearly all of it used)
         bus.subscribe(inbox(self.i), self._on_xchg)
         if self.rejoin:
             bus.subscribe("agent/*/estimate", self._on_peer_estimate)
