@@ -116,7 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         print(f"{r['test']:<{w}}  {r['passed']:>2}/{r['runs']:<3}  {r['median_s']:>8}  {r['max_s']:>5}  {r['first_failure'] or ''}")
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps({"repeat": a.repeat, "parallel": a.parallel, "cpus": os.cpu_count(),
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    a.out.write_text(json.dumps({"commit": commit or None, "repeat": a.repeat, "parallel": a.parallel, "cpus": os.cpu_count(),
                                  "wall_s": round(time.monotonic() - t0, 1), "date": time.strftime("%Y-%m-%d"),
                                  "tests": rows}, indent=1))
     print(f"\nwrote {a.out}")
