@@ -114,7 +114,7 @@ def test_payloads_carry_no_measurement():
 
     nodes = {0: Spy(0, w.source(1), T=T), 1: Spy(1, w.source(2), T=T)}
     run_lockstep(nodes, T, range(w.ticks))
-    assert {tuple(sorted(p)) for p in sent} == {("arrival", "count", "nodes"), ("sig", "xy")}
+    assert {tuple(sorted(p)) for p in sent} == {("arrival", "clean", "count", "nodes"), ("sig", "xy")}
     private = {float(v) for r in w.recs for v in (*r.z, *r.gps)}
     values = {float(v) for p in sent for a in p.values() for v in np.ravel(a)}
     assert len(values) > 1000 and not private & values
@@ -178,3 +178,19 @@ def test_the_distributed_mode_links_the_uavs():
     dist = parse_scenario(scenario_data(str(path), ['fusion.mode="distributed"']), str(path))
     assert central.topology.graphs[0].edges == [] and dist.topology.graphs[0].edges == [[0, 1]]
     assert dist.uav.admm() == {"iterations": 8, "rho": 0.05}
+
+
+def test_a_lost_payload_ends_the_ticks_consensus_on_both_sides_and_the_next_tick_agrees_again():
+    """UAV 2's round-4 payload of tick 300 never reaches UAV 1: UAV 1 finishes the tick alone, its next
+    payload tells UAV 2, which leaves too; both restart their duals at tick 301 and agree from then on."""
+    w = World(0.10, dur=20.0)
+    nodes = {0: AdmmFusionNode(0, w.source(1), T=T), 1: AdmmFusionNode(1, w.source(2), T=T)}
+    got: dict = {0: [], 1: []}
+    run_lockstep(nodes, T, range(w.ticks), on_tick=_track(nodes, got),
+                 lost=lambda k, r, i, j: (k, r, i, j) == (300, 4, 1, 0))
+    assert nodes[0].counters["rounds_broken"] == 1 and nodes[1].counters["rounds_broken"] == 1
+    assert nodes[0].counters["ticks_alone"] == 1 and nodes[1].counters["ticks_alone"] == 1
+    after0 = {t: x for t, x, k in got[0] if k > 300}
+    after1 = {t: x for t, x, k in got[1] if k > 300}
+    assert after0 and after0.keys() == after1.keys()
+    assert all(np.array_equal(after0[t], after1[t]) for t in after0)

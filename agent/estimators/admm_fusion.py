@@ -35,9 +35,10 @@ arrival cost (with the eviction count, the scale σ̂ and the last normalised re
 reports is the window of the tick, the newest arrival cost reported is everybody's (so a node that missed
 one, or rejoins empty, takes it over), and M = the nodes heard. Rounds 1…: one ADMM iteration each; after
 the first, a node drops its own relative rows whose residual exceeds ``reject``·σ̂ (the central estimator's
-gross-outlier re-solve). A node not heard in a round ends consensus for the tick: the rest is solved alone
-(its duals reset), which is also what a node with no peer does every tick — it keeps estimating from its
-own data.
+gross-outlier re-solve). A node not heard in a round ends consensus for the tick: the rest is solved alone,
+and its payloads say so, so that the others leave too; the duals start again from 0 at the next tick (a
+node reports in round 0 whether it ended the last one in consensus). Solving alone is also what a node with
+no peer does every tick — it keeps estimating from its own data.
 
 Window and arrival cost: as in :class:`robust_mhe.RobustMHE` — at the end of a tick with N ≥ W nodes the
 oldest leaves (and, chained, the next ones of the same UAV); its owner folds it into the arrival cost with
@@ -134,6 +135,7 @@ class AdmmFusionNode(Estimator):
         self._parts_prev: tuple[int, ...] = ()
         self._solved_key: tuple | None = None
         self._moved = False
+        self._clean = False          # the last tick ended in consensus (round 0 tells the others)
         self.newest = np.zeros(4)
         self.t_newest = math.nan
         self._x = np.zeros(4)
@@ -209,6 +211,7 @@ class AdmmFusionNode(Estimator):
         self._z = {key: Z[n].copy() for n, key in enumerate(self._nodes)}
         self._y = {key: self._Y[n].copy() for n, key in enumerate(self._nodes)}
         self._parts_prev = self._parts
+        self._clean = not self._alone
         self._solved_key = self._problem_key() if self._alone else None
         self._moved = self._nodes[-1][0] != self.t_newest
         self.newest, self.t_newest = Z[-1].copy(), self._nodes[-1][0]
@@ -238,7 +241,8 @@ class AdmmFusionNode(Estimator):
         for n, t in enumerate(mine):
             rows[n, 0] = t
             rows[n, 1:] = self._z.get((t, self.i), self._guess(t))
-        return {"nodes": rows, "count": np.array([float(len(mine))]), "arrival": self.arrival.pack()}
+        return {"nodes": rows, "count": np.array([float(len(mine))]), "arrival": self.arrival.pack(),
+                "clean": np.array([1.0 if self._clean else 0.0])}
 
     def _guess(self, t: float) -> np.ndarray:
         """A new own node's first state: the newest consensus state before it predicted to t, else the
@@ -281,7 +285,8 @@ class AdmmFusionNode(Estimator):
         if not self._nodes:
             return
         self._parts = tuple(sorted(reports))
-        same = self._parts == self._parts_prev
+        # the duals carry over only if every participant ended the last tick in consensus with the same others
+        same = self._parts == self._parts_prev and all(reports[j]["clean"][0] == 1.0 for j in self._parts)
         self._Z = np.array([self._z.get(key, states[key]) for key in self._nodes])
         self._Y = np.array([self._y[key] if same and key in self._y else np.zeros(4) for key in self._nodes])
         self._delta = self.scale.delta
@@ -295,6 +300,7 @@ class AdmmFusionNode(Estimator):
     def _valid_report(self, p: Payload) -> bool:
         try:
             ok = (p["nodes"].shape == (self.cap, 5) and p["count"].shape == (1,) and p["arrival"].shape == (25,)
+                  and p["clean"].shape == (1,)
                   and 0 <= p["count"][0] <= self.cap and np.isfinite(p["nodes"]).all()
                   and np.isfinite(p["arrival"]).all())
             return bool(ok and np.all(np.linalg.eigvalsh(p["arrival"][6:22].reshape(4, 4)) > 0))
@@ -306,12 +312,14 @@ class AdmmFusionNode(Estimator):
         return (tuple(self._nodes), self.arrival.evictions, self.arrival.t, self._delta)
 
     def _signature(self) -> np.ndarray:
-        return np.array([float(len(self._nodes)), float(sum(t for t, _ in self._nodes))])
+        """[N, Σ node times, 1 if this node has left consensus for the tick]: a peer whose window differs, or
+        that went alone (it missed a payload), breaks the round for the others too."""
+        return np.array([float(len(self._nodes)), float(sum(t for t, _ in self._nodes)), float(self._alone)])
 
     def _fits(self, p: Payload) -> bool:
         xy, sig = p.get("xy"), p.get("sig")
         return (isinstance(xy, np.ndarray) and xy.shape == (4 * len(self._nodes),) and np.isfinite(xy).all()
-                and isinstance(sig, np.ndarray) and sig.shape == (2,) and np.array_equal(sig, self._signature()))
+                and isinstance(sig, np.ndarray) and sig.shape == (3,) and np.array_equal(sig, self._signature()))
 
     # ------------------------------------------------------------------ the local problem
     def _prior(self) -> ArrivalCost:
@@ -497,11 +505,13 @@ class AdmmFusionNode(Estimator):
 
 def run_lockstep(nodes: Mapping[int, AdmmFusionNode], T: float, ticks: range,
                  alive: Callable[[int, int], bool] | None = None,
-                 on_tick: Callable[[int], None] | None = None) -> None:
+                 on_tick: Callable[[int], None] | None = None,
+                 lost: Callable[[int, int, int, int], bool] | None = None) -> None:
     """Run the nodes through ``ticks`` in one process, every payload delivered (the in-process reference a
     lockstep run over Zenoh must equal). ``alive(k, i)``: whether node i takes part in tick k (default:
     always); one that does not sits the tick out (:meth:`AdmmFusionNode.predict_only`) and is nobody's
-    neighbour. ``on_tick(k)`` after every tick."""
+    neighbour. ``on_tick(k)`` after every tick; ``lost(k, r, i, j)``: whether i's round-r payload of tick k
+    fails to reach j (a dropped link)."""
     ids = sorted(nodes)
     for k in ticks:
         up = [i for i in ids if alive is None or alive(k, i)]
@@ -514,7 +524,7 @@ def run_lockstep(nodes: Mapping[int, AdmmFusionNode], T: float, ticks: range,
         for r in range(nodes[ids[0]].rounds):
             out = {i: nodes[i].payload(r) for i in up}
             for i in up:
-                nodes[i].absorb(r, {j: out[j] for j in up if j != i})
+                nodes[i].absorb(r, {j: out[j] for j in up if j != i and not (lost and lost(k, r, j, i))})
         for i in up:
             nodes[i].finish()
         if on_tick is not None:
