@@ -114,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         cells.append({"outlier_fraction": frac, "central_rmse": statistics.fmean(rc), "distributed_rmse": statistics.fmean(rd),
                       "ratio": statistics.fmean(rd) / statistics.fmean(rc), "per_seed": {"central": rc, "distributed": rd}})
     sweep = []
+    load = os.getloadavg()[0]
     cfg, st = world(0.10, 1, a.duration)
     c10 = rmse(st, central(cfg, st, T, ticks))
     for it in (1, 2, 4, 8, 16):
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"iterations {it:2d}: {sweep[-1]['rmse']:.3f} m (central {c10:.3f}), {us:.0f} µs CPU per node-tick", flush=True)
     res = {"date": time.strftime("%Y-%m-%d"), "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
            "seeds": a.seeds, "duration_s": a.duration, "T": T, "iterations": it0, "rho": rho, "cells": cells,
-           "iteration_sweep": sweep}
+           "iteration_sweep": sweep, "load_avg": round(load, 2)}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(res, indent=1))
     a.doc.write_text(doc(res))
@@ -150,7 +151,8 @@ def doc(res: dict) -> str:
         lines.append(f"| {c['outlier_fraction']:.0%} | {c['central_rmse']:.3f} | {c['distributed_rmse']:.3f} | "
                      f"{c['ratio']:.3f} |")
     lines += ["", "Iterations per tick at 10 % outliers (seed 1): what consensus costs and buys (CPU per UAV and "
-              "tick, both nodes in one process, this machine):", "",
+              f"tick, both nodes in one process, this {res['machine']['cpus']}-core machine at a load average of "
+              f"{res.get('load_avg', float('nan')):.1f}):", "",
               "| iterations | RMSE (m) | central (m) | CPU per node-tick (µs) |", "|---:|---:|---:|---:|"]
     for s in res["iteration_sweep"]:
         lines.append(f"| {s['iterations']} | {s['rmse']:.3f} | {s['central_rmse']:.3f} | {s['cpu_us_per_node_tick']:.0f} |")

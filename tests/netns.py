@@ -116,7 +116,8 @@ class Network:
 
 class CutAndWatch:
     """on_poll hook of the mesh run: watch liveliness and ticks from the first host; at tick
-    ``cut_at`` take host ``victim``'s switch port down, bring it up ``down_s`` later."""
+    ``at_tick`` take the switch port ``port`` down, bring it up ``down_s`` later — and, with ``repeat``
+    > 1, cut it again ``every_s`` after each heal (bench/bench_netcut.py's trials)."""
 
     def __init__(self, spec: dict):
         self.spec = spec
@@ -125,6 +126,7 @@ class CutAndWatch:
         self.seen_k = -1
         self.cut_t: float | None = None
         self.heal_t: float | None = None
+        self.cuts = 0
 
     def _note(self, what: str, **kw) -> None:
         self.timeline.append({"t": time.time(), "event": what, **kw})
@@ -140,9 +142,12 @@ class CutAndWatch:
         cut = self.spec.get("cut")
         if not cut:
             return
-        if self.cut_t is None and self.seen_k >= cut["at_tick"]:
+        again = (self.heal_t is not None and self.cuts < cut.get("repeat", 1)
+                 and time.time() - self.heal_t >= cut.get("every_s", 0.0))
+        if (self.cut_t is None and self.seen_k >= cut["at_tick"]) or again:
             _ip("-n", cut["switch"], "link", "set", cut["port"], "down")
-            self.cut_t = time.time()
+            self.cut_t, self.heal_t = time.time(), None
+            self.cuts += 1
             self._note("cut", k=self.seen_k, port=cut["port"])
         elif self.cut_t is not None and self.heal_t is None and time.time() - self.cut_t >= cut["down_s"]:
             _ip("-n", cut["switch"], "link", "set", cut["port"], "up")

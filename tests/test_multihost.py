@@ -43,18 +43,18 @@ def net():
         assert not any(ns in netns._ip("netns", "list").stdout for ns in [n.switch, *n.hosts])
 
 
-def mesh_run(net, tmp_path: Path, sets: list[str], cut: dict | None = None) -> dict:
+def mesh_run(net, tmp_path: Path, sets: list[str], cut: dict | None = None, timeout_s: float = 150) -> dict:
     cfgs = mesh_configs(list(zip(HOSTS, net.addrs)), tmp_path / "cfg")
     spec = {"out": str(tmp_path / "run"), "scenario": str(SCEN / "gu_hu_normal.toml"), "set": sets,
             "hosts": [{"name": h, "wrap": net.wrap(i) if i else [], "router": str(cfgs[h]) if i else None}
                       for i, h in enumerate(HOSTS)],
-            "where": WHERE, "hub_config": str(cfgs["a"]), "timeout_s": 150}
+            "where": WHERE, "hub_config": str(cfgs["a"]), "timeout_s": timeout_s}
     if cut:
         spec["cut"] = {"switch": net.switch, **cut}
     (tmp_path / "spec.json").write_text(json.dumps(spec))
     # the launcher runs on host a: its embedded router is host a's router
     r = net.run(0, sys.executable, str(ROOT / "tests" / "netns.py"), "mesh-run", str(tmp_path / "spec.json"),
-                cwd=str(ROOT), capture_output=True, text=True, timeout=420)   # the run ≤ 150 s, then its scoring
+                cwd=str(ROOT), capture_output=True, text=True, timeout=timeout_s + 270)   # the run, then its scoring
     assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
     return json.loads((tmp_path / "run" / "run.json").read_text())
 
