@@ -21,13 +21,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "bench"))
 
 import netns  # noqa: E402 - from tests/, after the sys.path lines above
+from bench_recovery import stats  # noqa: E402 - same (median / p95 / max of a distribution with gaps)
 from test_multihost import HOSTS, VICTIMS, mesh_run  # noqa: E402 - same
 
 TARGETS = {"detect_s": 2.0, "recover_s": 1.0}
@@ -52,14 +52,6 @@ def trials(timeline: list[dict]) -> list[dict]:
         out.append({"trial": j // 2, "detect_s": round(max(lost.values()) - cut["t"], 3) if len(lost) == len(victims) else None,
                     "recover_s": round(max(back.values()) - heal["t"], 3) if len(back) == len(victims) else None})
     return out
-
-
-def stats(xs: list) -> dict:
-    v = [x for x in xs if x is not None]
-    if not v:
-        return {"n": 0, "missing": len(xs)}
-    return {"n": len(v), "missing": len(xs) - len(v), "median": round(float(np.median(v)), 3),
-            "p95": round(float(np.percentile(v, 95)), 3), "max": round(max(v), 3)}
 
 
 def main(argv: list[str] | None = None) -> int:

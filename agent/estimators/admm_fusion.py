@@ -216,8 +216,7 @@ class AdmmFusionNode(Estimator):
         self._moved = self._nodes[-1][0] != self.t_newest
         self.newest, self.t_newest = Z[-1].copy(), self._nodes[-1][0]
         self._evict()
-        F, _ = white_noise_acceleration(max(self._t_end - self.t_newest, 0.0), self.q)
-        self._x = F @ self.newest
+        self._x = self._predicted(self._t_end)
 
     def predict_only(self, ctx: TickContext, q: int) -> None:
         """A tick sat out (the world marks this UAV dead, or its tick was lost): its measurements of the
@@ -324,14 +323,7 @@ class AdmmFusionNode(Estimator):
     # ------------------------------------------------------------------ the local problem
     def _prior(self) -> ArrivalCost:
         """The arrival cost on the window's oldest node."""
-        t0, owner = self._nodes[0]
-        a = self.arrival
-        if a.evictions == 0:
-            p2, v2 = self.p0_sigma ** 2, self.v0_sigma ** 2
-            m = self._Z[0]
-            return ArrivalCost(np.array([m[0], m[1], 0.0, 0.0]), np.diag([p2, p2, v2, v2]))
-        F, Q = white_noise_acceleration(max(t0 - a.t, 0.0), self.q, self.dt_floor)
-        return ArrivalCost(*predict(a.mean, a.cov, F, Q))
+        return self._prior_at(self._nodes[0][0], self._Z[0])
 
     def _build(self) -> None:
         """The two axes' rows for this tick's window (shared rows weighted 1/M)."""
@@ -474,7 +466,7 @@ class AdmmFusionNode(Estimator):
             self.counters["evicted"] += 1
             if owner == self.i:
                 rec = self._own.pop(t0)
-                prior = self._prior_at(t0)
+                prior = self._prior_at(t0, self._z[(t0, owner)])
                 s = np.sqrt(np.diag(rec.R))
                 Wr, Wg = np.diag(1.0 / s), np.diag(1.0 / np.sqrt(np.diag(rec.gps_R)))
                 mean, cov, nu = fold_node(prior, rec, Wr, Wg, self._z[(t0, owner)], own_u.pop(t0), self._delta,
@@ -487,12 +479,13 @@ class AdmmFusionNode(Estimator):
                 break               # the owner's posterior arrives in the next round 0
         self._nodes = nodes
 
-    def _prior_at(self, t0: float) -> ArrivalCost:
+    def _prior_at(self, t0: float, state: np.ndarray) -> ArrivalCost:
+        """The arrival cost on a node at time t0 whose current state is ``state``: the initial prior around
+        its position before any node has left, else the last posterior predicted to t0."""
         a = self.arrival
         if a.evictions == 0:
             p2, v2 = self.p0_sigma ** 2, self.v0_sigma ** 2
-            m = self._z[(t0, self._nodes[0][1])]
-            return ArrivalCost(np.array([m[0], m[1], 0.0, 0.0]), np.diag([p2, p2, v2, v2]))
+            return ArrivalCost(np.array([state[0], state[1], 0.0, 0.0]), np.diag([p2, p2, v2, v2]))
         F, Q = white_noise_acceleration(max(t0 - a.t, 0.0), self.q, self.dt_floor)
         return ArrivalCost(*predict(a.mean, a.cov, F, Q))
 
