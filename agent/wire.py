@@ -15,6 +15,9 @@ key                        type          published by
 ``agent/<i>/xchg``         Xchg          sensor i, the same payload once more for observers (recorder,
                                          dashboard); no sensor reads it
 ``agent/<i>/estimate``     Estimate      sensor i (x̂ₖ and x̂ₖ₊₁)
+``agent/<i>/to/<j>/        Estimate      sensor i, its last estimate once more, to a sensor j whose
+estimate``                               liveliness token (re)appeared: a restarted j starts from its
+                                         neighbours' estimates (inbox ``agent/*/to/<j>/estimate``)
 ``agent/<i>/state``        State         sensor i (position/velocity after tick k)
 ``fusion/estimate``        Estimate      the fusion solver
 ``world/end``              End           the world (the run is over)
@@ -657,22 +660,32 @@ def inbox(i: int) -> str:
     return f"agent/*/to/{i}/xchg"
 
 
+def estimate_key(src: int, dst: int) -> str:
+    """The key sensor ``src`` hands its last estimate to a (re)joining sensor ``dst`` on."""
+    return f"agent/{src}/to/{dst}/estimate"
+
+
+def estimate_inbox(i: int) -> str:
+    """A rejoining sensor ``i``'s inbox for its peers' last estimates (a subscription pattern)."""
+    return f"agent/*/to/{i}/estimate"
+
+
 def addressed(key: str) -> bool:
-    """Is ``key`` an addressed copy (``agent/<i>/to/<j>/xchg``), not for observers?"""
+    """Is ``key`` addressed to one sensor (``agent/<i>/to/<j>/xchg`` or ``…/estimate``), not for observers?"""
     return key.count("/") == 4 and key.startswith("agent/")
 
 
 def expected_type(key: str) -> tuple[type[Message], int | None]:
     """Message class a relative key carries, and the agent id that owns it (None if not an agent key)."""
     parts = key.split("/")
-    if parts[0] == "agent" and len(parts) == 5 and parts[2] == "to" and parts[4] == "xchg":
+    if parts[0] == "agent" and len(parts) == 5 and parts[2] == "to" and parts[4] in ("xchg", "estimate"):
         try:
             owner, dst = int(parts[1]), int(parts[3])
         except ValueError:
             raise WireError("bad_key", key) from None
         if owner < 0 or dst < 0 or dst == owner:
             raise WireError("bad_key", key)
-        return Xchg, owner
+        return _KEY_TYPES[("agent", parts[4])], owner
     if parts[0] == "agent" and len(parts) == 3:
         try:
             owner = int(parts[1])

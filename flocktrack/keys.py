@@ -13,7 +13,8 @@ identity       may put (ingress ``put``)               may read (``declare_subsc
 =============  ======================================  =============================================
 agent-i        ``ft/<run>/agent/<i>/**``               world/tick, world/event, world/end, target/truth,
                                                        agent/*/to/<i>/xchg (its inbox only),
-                                                       agent/*/estimate, control/**
+                                                       agent/*/to/<i>/estimate (a restart's start),
+                                                       control/**
 target         ``ft/<run>/target/**``                  world/**, agent/*/estimate
 world          ``ft/<run>/world/**``                   agent/*/state, target/state, control/**,
                                                        launcher/event
@@ -61,8 +62,8 @@ DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 # topology/world.py, flocktrack/record.py, dashboards/live.py, flocktrack/launch.py)
 READS = {
     # ({i}: the agent's own id — a sensor reads only the exchange payloads addressed to it)
-    "agent": ["world/tick", "world/event", "world/end", "target/truth", "agent/*/to/{i}/xchg", "agent/*/estimate",
-              "control/**"],
+    "agent": ["world/tick", "world/event", "world/end", "target/truth", "agent/*/to/{i}/xchg",
+              "agent/*/to/{i}/estimate", "control/**"],
     "target": ["world/**", "agent/*/estimate"],
     "world": ["agent/*/state", "target/state", "control/**", "launcher/event"],
     "recorder": ["**"],

@@ -284,10 +284,15 @@ class Impostor:
         self.forged = Counter()
         self.seen_ticks = 0
         self.controls_sent = False
+        self.read_estimates = 0
 
     def _put(self, key: str, msg) -> None:
         self.bus.publish(key, msg)
         self.forged[key.split("/")[0] + "/" + key.split("/")[-1]] += 1
+
+    def _read_estimate(self, key: str, data: bytes) -> None:
+        if key != "agent/4/estimate":       # (its own forgeries come back to it inside its session)
+            self.read_estimates += 1
 
     def _forge(self, key: str, data: bytes) -> None:
         try:
@@ -301,13 +306,16 @@ class Impostor:
             self._put("target/truth", wire.Truth(k=msg.k, t=msg.t, x=np.full(4, 1e3)))
             self._put("agent/4/state", wire.State(src=4, k=msg.k, pos=np.array([1e3, 1e3]), vel=np.zeros(2)))
             self._put("target/state", wire.State(k=msg.k, pos=np.array([1e3, 1e3]), vel=np.zeros(2)))
+            # sensor 4's estimate, to the observers and handed to sensor 1 as if it had restarted (agent 3
+            # reads no one's estimates: it cannot copy them, only make them up)
+            forged = wire.Estimate(src=4, k=msg.k, x=np.full(4, 1e3), x_next=np.full(4, 1e3))
+            self._put("agent/4/estimate", forged)
+            self._put("agent/4/to/1/estimate", forged)
             if msg.k >= 20 and not self.controls_sent:
                 self.controls_sent = True
                 self._put("control/kill", wire.Control(verb="kill", args={"agent": 1}))
                 self._put("control/pause", wire.Control(verb="pause", args={}))
                 self._put("world/end", wire.End(k=msg.k, reason="impostor"))
-        elif key.endswith("/estimate") and msg.src != 4:
-            self._put("agent/4/estimate", dataclasses.replace(msg, src=4, x=msg.x + 1e3, x_next=msg.x_next + 1e3))
         elif key.endswith("/xchg") and msg.src in (2, 4):
             j = 5 if msg.src == 2 else 4    # (as the sender, to the observers and to sensor 1's inbox)
             forged = dataclasses.replace(msg, src=j, payload={k: v + 1e3 for k, v in msg.payload.items()})
@@ -320,8 +328,9 @@ class Impostor:
 
             self.bus = ZenohBus(launcher.run, connect=launcher.endpoint,
                                 config_file=str(self.keyset.client("agent-3")))
-            for pat in ("world/tick", "agent/*/estimate", "agent/*/to/3/xchg"):
+            for pat in ("world/tick", "agent/*/to/3/xchg"):
                 self.bus.subscribe_raw(pat, self._forge)
+            self.bus.subscribe_raw("agent/*/estimate", self._read_estimate)
             for name in ("agent/9", "world/1"):
                 self.bus.declare_token(name)
         self.bus.poll(0)
@@ -346,6 +355,7 @@ def test_an_impostor_with_agent_3s_credentials_has_no_effect_on_a_live_run(tmp_p
     assert info["router"].startswith("tls/")
     # the impostor was connected (it read the ticks) and forged plenty
     assert imp.seen_ticks >= 20 and imp.controls_sent, imp.seen_ticks
+    assert imp.read_estimates == 0      # a sensor reads only what is addressed to it: no one's estimates
     assert sum(imp.forged.values()) > 150 and {"world/tick", "agent/estimate", "agent/xchg", "world/end",
                                                "control/kill"} <= set(imp.forged), imp.forged
     # ... and nobody noticed: the same numbers as the clean in-process run

@@ -202,13 +202,25 @@ def test_an_addressed_exchange_payload_is_its_senders_and_unseen_by_observers():
     data = wire.encode(wire.Xchg(src=3, k=12, r=4, payload={"a": np.zeros(2)}))
     assert wire.xchg_key(3, 5) == "agent/3/to/5/xchg" and wire.decode("agent/3/to/5/xchg", data).src == 3
     for key, reason in (("agent/4/to/5/xchg", "not_owner"), ("agent/3/to/3/xchg", "bad_key"),
-                        ("agent/3/to/x/xchg", "bad_key"), ("agent/3/to/5/estimate", "bad_key"),
+                        ("agent/3/to/x/xchg", "bad_key"), ("agent/3/to/5/meas", "bad_key"),
                         ("agent/3/via/5/xchg", "bad_key"), ("agent/3/to/-1/xchg", "bad_key")):
         with pytest.raises(wire.WireError) as e:
             wire.decode(key, data)
         assert e.value.reason == reason, key
     assert key_matches(wire.inbox(5), "agent/3/to/5/xchg") and not key_matches(wire.inbox(5), "agent/3/to/6/xchg")
     assert wire.addressed("agent/3/to/5/xchg") and not wire.addressed("agent/3/xchg")
+    # a sensor's last estimate handed to a restarted one: addressed, owned by its sender, never observed
+    est = wire.encode(wire.Estimate(src=3, k=12, x=np.zeros(4), x_next=np.ones(4)))
+    assert wire.estimate_key(3, 5) == "agent/3/to/5/estimate" and wire.addressed(wire.estimate_key(3, 5))
+    assert wire.decode("agent/3/to/5/estimate", est).x_next.tolist() == [1.0] * 4
+    assert key_matches(wire.estimate_inbox(5), "agent/3/to/5/estimate")
+    assert not key_matches(wire.estimate_inbox(5), "agent/3/to/5/xchg") and not key_matches(wire.inbox(5), "agent/3/to/5/estimate")
+    for key in ("agent/4/to/5/estimate", "agent/3/to/3/estimate"):
+        with pytest.raises(wire.WireError):
+            wire.decode(key, est)
+    with pytest.raises(wire.WireError):
+        wire.decode("agent/3/to/5/estimate", data)     # an exchange payload on it: the wrong type
+    assert not any(key_matches(p, "agent/3/to/5/estimate") for p in wire.OBSERVED)
     published = ["world/tick", "world/end", "world/event", "launcher/event", "target/truth", "target/state",
                  "agent/3/meas", "agent/3/xchg", "agent/3/estimate", "agent/3/state", "fusion/estimate",
                  "control/pause", "control/fault/x"]
