@@ -152,9 +152,12 @@ def test_a_restarted_sensor_starts_from_its_neighbours_estimates_not_its_prior(t
     others = [float(rows[260][f"err_{i}"]) for i in range(sc.sensors.n) if i != 1]
     assert first < 3 * max(others) + 0.05, (first, others)                     # ... it starts where they are
     assert max(float(r["rmse"]) for k, r in rows.items() if k >= 10) < 0.3     # and nobody is dragged off
-    stats = {p.stem: json.loads(p.read_text()).get("role", {}) for p in (tmp_path / "stats").glob("agent_*.json")}
+    bus = {p.stem: json.loads(p.read_text()) for p in (tmp_path / "stats").glob("agent_*.json")}
+    stats = {name: b.get("role", {}) for name, b in bus.items()}
     assert stats["agent_1"].get("reinitialised_from", 0) >= 1 and not stats["agent_1"].get("join_deadline")
     assert sum(s.get("estimates_handed", 0) for s in stats.values()) >= 2
+    # while it was dead nobody addressed payloads to it (they would pile up, held for a subscriber, and spill)
+    assert not any(b.get("dropped", {}).get("unmatched") for b in bus.values()), {n: b.get("dropped") for n, b in bus.items()}
 
 
 def _inproc(tmp_path, name, events, **over):
