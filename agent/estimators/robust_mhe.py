@@ -49,6 +49,7 @@ so the online threshold is the paper's λ chosen per window (:attr:`lam`); at c_
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, insort
 from dataclasses import dataclass
 from typing import Literal
 
@@ -73,18 +74,24 @@ class RobustScale:
         if size < 1 or min_count < 1 or not sigma0 > 0 or not c > 0:
             raise ValueError("size, min_count ≥ 1 and sigma0, c > 0")
         self.size, self.min_count, self.c = int(size), int(min_count), float(c)
-        self._buf = np.zeros(self.size)
+        self._buf = [0.0] * self.size   # the last ``size`` values, in arrival order (a ring)
+        self._sorted: list[float] = []  # the same values, sorted: the median without a sort per push
         self._n = 0          # values pushed so far
         self.sigma = float(sigma0)
 
     def push(self, r) -> float:
-        """Add residuals; returns the updated σ̂."""
-        for v in np.abs(np.ravel(np.asarray(r, float))):
+        """Add residuals; returns the updated σ̂ (the same number np.median of the ring gives)."""
+        for v in np.abs(np.ravel(np.asarray(r, float))).tolist():
             if math.isfinite(v):
-                self._buf[self._n % self.size] = v
+                slot = self._n % self.size
+                if self._n >= self.size:
+                    del self._sorted[bisect_left(self._sorted, self._buf[slot])]
+                self._buf[slot] = v
+                insort(self._sorted, v)
                 self._n += 1
         if self._n >= self.min_count:
-            med = float(np.median(self._buf[: min(self._n, self.size)]))
+            s, m = self._sorted, len(self._sorted)
+            med = s[m // 2] if m % 2 else (s[m // 2 - 1] + s[m // 2]) / 2
             if med > 0:
                 self.sigma = MAD_TO_SIGMA * med
         return self.sigma
@@ -256,6 +263,8 @@ class RobustMHE(SumOfNormsEstimator):
     def _prior_at_oldest(self, rec: RelativeMeasurement) -> ArrivalCost:
         """The arrival cost node 0 (measured by ``rec``) had in the last solve."""
         if self._post is not None:
+            if self._arr_key == (self._post[0], float(rec.t)):
+                return self._arr                   # (what arrival_cost() gave that solve)
             return self._predicted_to(rec.t)
         return self._initial(rec.target_position)
 
