@@ -35,16 +35,13 @@ FLUSH_S = 0.5
 
 class McapRecorder:
     def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
-        from mcap.writer import CompressionType, IndexType, Writer
+        from mcap.writer import CompressionType, Writer
 
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f = open(self.path, "wb")
-        # chunk indexes only: the per-chunk message indexes (optional in MCAP; readers, Foxglove included,
-        # find messages through the chunk index) cost ~2.8 KB of memory per chunk until finish() writes the
-        # summary — the recorder's RSS grew 8 % over a 10-minute soak with them (docs/reliability.md)
-        self._w = Writer(self._f, chunk_size=CHUNK_BYTES, compression=CompressionType.NONE,
-                         index_types=IndexType.CHUNK | IndexType.METADATA | IndexType.ATTACHMENT)
+        self._w = Writer(self._f, chunk_size=CHUNK_BYTES, compression=CompressionType.NONE)
+        self._packed = 0      # chunk indexes packed so far (_pack_chunk_indexes)
         self._w.start(profile="flocktrack", library="flocktrack")
         self._schemas = {name: self._w.register_schema(
             name=f"flocktrack.{cls.__name__}", encoding="jsonschema",
@@ -89,8 +86,33 @@ class McapRecorder:
         """Close the chunk in progress once it is FLUSH_S old (also called when no message comes): what is
         recorded reaches the OS within FLUSH_S. Chunks still fill to CHUNK_BYTES at high rates."""
         if self._open_since is not None and time.monotonic() - self._open_since >= FLUSH_S:
-            self._w.flush()
-            self._open_since = None
+            self.flush()
+
+    def flush(self) -> None:
+        """Close the chunk in progress now and hand everything written to the OS."""
+        self._w.flush()
+        self._open_since = None
+        self._pack_chunk_indexes()
+
+    def _pack_chunk_indexes(self) -> None:
+        """The writer keeps every chunk's index until :meth:`finish` writes the summary — as a record object
+        with a dict of per-channel offsets, ~2.8 KB of memory per chunk with ~40 channels: the recorder's RSS
+        grew 8 % over a 10-minute soak (docs/reliability.md). Each finished index is replaced by its
+        serialised bytes (~0.5 KB), written out unchanged at the end. (Message indexes stay: Foxglove's
+        indexed reader refuses a chunk index without them.) Needs the mcap writer's private list; without
+        it nothing is packed and the memory simply grows as before."""
+        from mcap.data_stream import RecordBuilder
+        from mcap.records import ChunkIndex
+
+        idx = getattr(self._w, "_Writer__chunk_indices", None)
+        if not isinstance(idx, list):
+            return
+        for j in range(self._packed, len(idx)):
+            if isinstance(idx[j], ChunkIndex):
+                b = RecordBuilder()
+                idx[j].write(b)
+                idx[j] = _PackedRecord(b.end())
+        self._packed = len(idx)
 
     def finish(self) -> None:
         if self._finished:
@@ -100,6 +122,18 @@ class McapRecorder:
             self._w.finish()
         finally:
             self._f.close()
+
+
+class _PackedRecord:
+    """A record already serialised: ``write`` copies its bytes (what the writer's summary calls)."""
+
+    __slots__ = ("raw",)
+
+    def __init__(self, raw: bytes):
+        self.raw = raw
+
+    def write(self, stream) -> None:
+        stream.write(self.raw)
 
 
 def recover(path: str | Path, out: str | Path | None = None) -> tuple[Path, Recording]:
