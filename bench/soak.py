@@ -75,14 +75,11 @@ def fault_cycle(ticks: int, tick_wall_s: float, n: int, every_s: float = 30.0, h
 
 
 def phase_data(name: str, minutes: float, flock_period: float) -> tuple[dict, str]:
-    sets = {"run.mode": "realtime"}
-    if name == "flock30":
-        sets.update({"sensors.n": 30})
+    sets = {"run.mode": "realtime", **({"sensors.n": 30} if name == "flock30" else {})}
     data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [], **sets)
-    if name == "flock30":
-        data.setdefault("sensors", {}).pop("positions", None)     # the demo's 12 fixed starts: let 30 be placed
     run = data["run"]
     if name == "flock30":
+        data.setdefault("sensors", {}).pop("positions", None)     # the demo's 12 fixed starts: let 30 be placed
         run["speed"] = round(float(run["T"]) / flock_period, 6)
     tick_wall = float(run["T"]) / float(run.get("speed", 1.0))
     run["ticks"] = int(minutes * 60.0 / tick_wall)

@@ -233,10 +233,7 @@ class RobustMHE(SumOfNormsEstimator):
             if key != self._arr_key:
                 self._arr_key, self._arr = key, self._initial(w.meas[s0].target_position)
             return self._arr
-        key = (self._post[0], float(w.t[s0]))
-        if key != self._arr_key:
-            self._arr_key, self._arr = key, self._predicted_to(key[1])
-        return self._arr
+        return self._predicted_to(float(w.t[s0]))
 
     def _initial(self, position: np.ndarray) -> ArrivalCost:
         """The initial arrival cost (class doc) on a node measured at ``position``."""
@@ -244,10 +241,15 @@ class RobustMHE(SumOfNormsEstimator):
         return ArrivalCost(np.array([position[0], position[1], 0.0, 0.0]), np.diag([p2, p2, v2, v2]))
 
     def _predicted_to(self, t: float) -> ArrivalCost:
-        """The last node out's posterior predicted to time t (≥ its time) by the motion model (2)."""
-        t_a, x, S = self._post
-        F, Q = white_noise_acceleration(max(t - t_a, 0.0), self.q, self.dt_floor)
-        return ArrivalCost(*predict(x, S, F, Q))
+        """The last node out's posterior predicted to time t (≥ its time) by the motion model (2); the last
+        one is kept (a window is solved twice when it holds a gross outlier, and its leaving node folds
+        against the prior its last solve had)."""
+        key = self._arr_key
+        if key is None or key[0] is not self._post or key[1] != float(t):   # (the posterior itself, not its time)
+            t_a, x, S = self._post
+            F, Q = white_noise_acceleration(max(t - t_a, 0.0), self.q, self.dt_floor)
+            self._arr_key, self._arr = (self._post, float(t)), ArrivalCost(*predict(x, S, F, Q))
+        return self._arr
 
     def _absorb(self, rec: RelativeMeasurement, Wr: np.ndarray, Wg: np.ndarray) -> None:
         """Node 0 of the last solve has left the window: its posterior (module doc) becomes the next
@@ -263,8 +265,6 @@ class RobustMHE(SumOfNormsEstimator):
     def _prior_at_oldest(self, rec: RelativeMeasurement) -> ArrivalCost:
         """The arrival cost node 0 (measured by ``rec``) had in the last solve."""
         if self._post is not None:
-            if self._arr_key == (self._post[0], float(rec.t)):
-                return self._arr                   # (what arrival_cost() gave that solve)
             return self._predicted_to(rec.t)
         return self._initial(rec.target_position)
 

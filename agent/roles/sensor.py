@@ -212,10 +212,14 @@ class SensorRole(Role):
         if not self._joining or self._join_forced or not tick.alive[self.i]:
             self._join_pending = False
             return False
-        nbrs = [j for j in tick.links[self.i] if tick.alive[j] and j not in self._dead]
+        nbrs = self._live_neighbours(tick)
         fresh = self._fresh_peer_estimates()
         self._join_pending = not (all(j in fresh for j in nbrs) if nbrs else fresh)
         return self._join_pending
+
+    def _live_neighbours(self, tick: Tick) -> list[int]:
+        """The sensors we hear this tick that the world lists alive and we have not seen vanish since."""
+        return [j for j in tick.links[self.i] if tick.alive[j] and j not in self._dead]
 
     def _fresh_peer_estimates(self) -> dict[int, Estimate]:
         """The peers' estimates of the last few ticks (what they handed us when we reappeared; in lockstep
@@ -249,7 +253,7 @@ class SensorRole(Role):
         b = float(tick.b[self.i])
         y = self._measure(tick, truth, b)
         links = tick.links[self.i]
-        self._nbrs = [j for j in links if tick.alive[j] and j not in self._dead]
+        self._nbrs = self._live_neighbours(tick)
         # range-based link dropping at the transport: only the sensors that hear us get our payloads
         self._out = [xchg_key(self.i, j) for j, heard in enumerate(tick.links) if j != self.i and self.i in heard]
         self._out.append(f"agent/{self.i}/xchg")
