@@ -36,7 +36,7 @@ def uav_stream(sc: Scenario):
 
 def build_fusion(sc: Scenario):
     """The fusion role of a UAV scenario: sum-of-norms + baselines on every agent's measurements."""
-    from .estimators.sum_of_norms import RelativeMeasurement
+    from .estimators.relative_measurement import RelativeMeasurement
     from .roles.fusion import FusionRole
 
     u = sc.uav.uav
@@ -106,17 +106,15 @@ def _uav_sensor(sc: Scenario, i: int, design: dict[str, Any], rejoin: bool) -> R
 
 def _uav_fusion_node(sc: Scenario, i: int, rejoin: bool) -> Role:
     """UAV i of ``[fusion] mode = "distributed"``: its own robust window, agreed by consensus ADMM."""
-    from .estimators.admm_fusion import AdmmFusionNode
+    from .estimators.registry import fusion_specs
     from .roles.uav import UavFusionNodeRole, UavTrack, track_records
 
     u = sc.uav.uav
     R, G = np.eye(2) * u.sigma_rel ** 2, np.eye(2) * u.sigma_gps ** 2
-    mhe = next(iter(sc.uav.make_estimators(sc.source).values()))   # the [fusion] estimator: its keys
+    name, est = next(iter(sc.uav.make_estimators(sc.source).items()))   # the [fusion] estimator: its keys
     track = UavTrack(uav_stream(sc), i, sc.run.T)
     a = sc.uav.admm()
-    node = AdmmFusionNode(i, track_records(track, R, G), W=mhe.W, q=mhe.q, iterations=a["iterations"], rho=a["rho"],
-                          c=mhe.c, reject=mhe.reject, scale_window=mhe.scale.size, dt_floor=mhe.dt_floor,
-                          whitening=mhe.window.whitening, robust_motion=not mhe.quad_motion, T=sc.run.T)
+    node = fusion_specs()[name].distributed(est, i, track_records(track, R, G), a["iterations"], a["rho"], sc.run.T)
     return UavFusionNodeRole(i, sc.run.ticks, sc.run.T, node, track, LinearSensor(sc.C_of(i), R),
                              rng_for(sc.run.seed, "agent", i, "measurement"), rejoin, seed=sc.run.seed,
                              catch_up=sc.run.mode == "realtime")

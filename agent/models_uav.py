@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .estimators.sum_of_norms import RelativeMeasurement
+from .estimators.relative_measurement import RelativeMeasurement
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from .estimators.registry import default_name
+from .estimators.registry import default_name, fusion_specs
 from .estimators.registry import names as estimator_names
 from .estimators.registry import spec_of
 from .estimators.spec import NoParams
@@ -43,6 +43,7 @@ from .schema import (LIMITS, Matrices, Matrix, Pairs, ScenarioError, Vector, bui
                      check_shape)
 from .seeding import rng_for
 from .suggest import did_you_mean
+from .wire import FAULT_LIMITS, MAX_EVADE_ACCEL
 
 if TYPE_CHECKING:
     from .models_uav import CarrilloScenario
@@ -384,7 +385,7 @@ def _check_measurements(sc: Scenario) -> None:
         for i, Ci in enumerate(s.C):
             if np.shape(Ci)[1] != m:
                 raise ScenarioError(src, f"sensors.C[{i}]", f"expected {m} columns (m = len(x0)), got {np.shape(Ci)[1]}")
-        if sc.uav is None and not spec_of(sc.estimator.name).per_sensor_C:
+        if sc.kind == "flock" and not spec_of(sc.estimator.name).per_sensor_C:
             allowed = [nm for nm in estimator_names() if spec_of(nm).per_sensor_C]
             raise ScenarioError(src, "sensors.C", f"per-sensor C is supported by the {', '.join(allowed)} "
                                 "estimator only", "give one common C")
@@ -444,7 +445,7 @@ def _check_estimator(sc: Scenario) -> None:
         check_covariance(src, "estimator.Q", e.Q, m, "filter process noise, m × m", semi=True)
     if e.P0 is not None:
         check_covariance(src, "estimator.P0", e.P0, m, "initial covariance, m × m")
-    if sc.uav is None:
+    if sc.kind == "flock":   # (a UAV-fusion scenario's sensors run no [estimator])
         spec_of(e.name).check(sc, e.params)
 
 
@@ -485,7 +486,7 @@ def _check_ever_linked(sc: Scenario) -> None:
     """Static sensors none of which is within range of another are never linked: no consensus, no flock —
     refused (flocking sensors close in, so their start proves nothing)."""
     s, r = sc.sensors, sc.topology.range
-    if s.n < 2 or s.motion != "static" or not math.isfinite(r) or sc.uav is not None:
+    if s.n < 2 or s.motion != "static" or not math.isfinite(r) or sc.kind != "flock":
         return
     P = sc.initial_positions()
     d = np.sqrt(((P[:, None, :] - P[None, :, :]) ** 2).sum(-1))
@@ -512,10 +513,13 @@ def validate_fault_event(e: FaultEventCfg, n: int, src: str, key: str, n_meas: i
                             "give heal > start, or leave heal out for a permanent fault")
     if not 0.0 <= e.p <= 1.0:
         raise ScenarioError(src, f"{key}.p", f"a probability in [0, 1] is expected, got {e.p}")
-    for name, hi in (("delay_ticks", 1000), ("jitter_ticks", 1000), ("delay_ms", 60_000.0), ("jitter_ms", 60_000.0)):
+    for name, hi in FAULT_LIMITS.items():      # (the bounds the wire enforces on a live event)
         v = getattr(e, name)
         if not (math.isfinite(v) and 0 <= v <= hi):
             raise ScenarioError(src, f"{key}.{name}", f"must be in [0, {hi:g}], got {v}")
+    if not (math.isfinite(e.accel) and abs(e.accel) <= MAX_EVADE_ACCEL):
+        raise ScenarioError(src, f"{key}.accel", f"must be in [-{MAX_EVADE_ACCEL:g}, {MAX_EVADE_ACCEL:g}] m/s², "
+                            f"got {e.accel}", "e.g. accel = 2.0 (an evading target's extra acceleration)")
     if e.delay_ms > 0 and e.jitter_ticks > 0:
         raise ScenarioError(src, f"{key}.jitter_ticks", "a delay in ms takes its jitter in ms",
                             "use jitter_ms with delay_ms (jitter_ticks goes with delay_ticks)")
@@ -610,9 +614,13 @@ def _check_fusion_mode(cfg, source: str) -> None:
         raise ScenarioError(source, "fusion.mode", f"expected \"central\" or \"distributed\", got {mode!r}",
                             f"{did_you_mean(str(mode), ('central', 'distributed'))}write mode = \"central\" (one fusion "
                             "process) or mode = \"distributed\" (consensus ADMM between the UAVs)")
-    if mode == "distributed" and cfg.fusion.get("estimator") != "robust_mhe":
-        raise ScenarioError(source, "fusion.estimator", "the distributed mode runs the robust moving-horizon fusion",
-                            "write estimator = \"robust_mhe\" (scenarios/carrillo_robust.toml)")
+    if mode == "distributed":
+        have = fusion_specs()
+        able = [name for name, spec in have.items() if spec.distributed is not None]
+        name = cfg.fusion.get("estimator", next((n for n, spec in have.items() if spec.default), None))
+        if name not in able:
+            raise ScenarioError(source, "fusion.estimator", f"the distributed mode cannot run {name!r}",
+                                "write " + " or ".join(f'estimator = "{a}"' for a in able) + " (scenarios/carrillo_robust.toml)")
     it, rho = cfg.fusion.get("admm_iterations", 8), cfg.fusion.get("admm_rho", 0.05)
     if isinstance(it, bool) or not isinstance(it, int) or not 1 <= it <= 100:
         raise ScenarioError(source, "fusion.admm_iterations", f"expected a whole number in 1…100, got {it!r}",

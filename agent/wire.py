@@ -422,12 +422,13 @@ BYZANTINE_MODES = ("nan", "huge", "stale", "bias")
 FAULT_LIMITS = {"delay_ticks": 1000, "jitter_ticks": 1000, "delay_ms": 60_000.0, "jitter_ms": 60_000.0}
 MAX_BURST_TICKS = 10_000         #: control/outlier_burst ticks
 MAX_INJECT_TICKS = 10**7         #: control/inject duration
+MAX_EVADE_ACCEL = 1e3            #: |accel| of an evade fault, m/s² (a target is not a rocket)
 
 _INF = math.inf
 #: the number parameters of a fault event and their ranges
 _FAULT_NUMBERS = {"p": (0.0, 1.0), "delay_ms": (0.0, FAULT_LIMITS["delay_ms"]),
                   "jitter_ms": (0.0, FAULT_LIMITS["jitter_ms"]), "magnitude": (-_INF, _INF),
-                  "noise_scale": (-_INF, _INF), "accel": (-_INF, _INF)}
+                  "noise_scale": (-_INF, _INF), "accel": (-MAX_EVADE_ACCEL, MAX_EVADE_ACCEL)}
 
 
 def _whole(v: Any, name: str, lo: int, hi: int) -> int:
@@ -611,6 +612,14 @@ def command(verb: str, args: dict[str, Any], n: int = MAX_LIST_LEN) -> Command:
                             _whole(a.get("ticks", 1), "ticks", 0, MAX_BURST_TICKS),
                             _float(a.get("magnitude", 0.0), "magnitude"))
     raise WireError("unknown_verb", verb)
+
+
+#: the typed command of each control verb (:func:`command` builds it): its fields but ``verb`` are the
+#: arguments the verb takes (``inject`` carries a fault event flat: the keys of a ``[[faults.events]]`` entry)
+COMMAND_TYPES: dict[str, type[Command]] = {
+    "pause": Command, "resume": Command, "heal": Command, "step": Step, "speed": Speed, "link_drop": LinkEdit,
+    "link_heal": LinkEdit, "link_loss": LinkLoss, "partition": Partition, "inject": Inject, "heal_fault": HealFault,
+    "kill": Member, "restart": Member, "outlier_burst": OutlierBurst}
 
 
 @dataclass

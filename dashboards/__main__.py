@@ -27,7 +27,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
-def main(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m dashboards", description=__doc__.split("\n")[0])
     ap.add_argument("--run", help="run name (key prefix ft/<run>/); live mode")
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (live)")
@@ -36,6 +36,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recording", help="an MCAP recording to show with a time slider (replay mode)")
     ap.add_argument("--port", type=int, default=8080, help="HTTP/websocket port of the page")
     ap.add_argument("--host", default="127.0.0.1", help="interface to serve on (0.0.0.0 in containers)")
+    ap.add_argument("--public-port", type=int, default=None,
+                    help="live: the port users open, for the logged operator link (a container's published "
+                         "host port; default: --port)")
     ap.add_argument("--config", default=None, help="Zenoh json5 config for this process")
     ap.add_argument("--exit-on-end", action="store_true", help="live: exit one second after world/end")
     ap.add_argument("--operator-token-file", help="live: file holding the run's operator token (default: "
@@ -46,6 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--play", action="store_true", help="replay: start playing at once")
     ap.add_argument("--png", help="replay: write a static PNG of the recording and exit (no server)")
     ap.add_argument("--tick", type=int, default=None, help="--png: the tick to draw (default: the last)")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = parser()
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
@@ -96,13 +104,14 @@ def main(argv: list[str] | None = None) -> int:
 
     info = RunInfo.from_files(args.scenario, args.design)
     return run_live(args.run, args.connect, args.port, info, host=args.host, config_file=args.config,
-                    exit_on_end=args.exit_on_end, stop_event=stop, operator_token=_operator_token(args),
+                    exit_on_end=args.exit_on_end, stop_event=stop, operator_token=operator_token(args),
                     tls=(args.tls_cert, args.tls_key) if args.tls_cert else None)
 
 
-def _operator_token(args) -> str | None:
+def operator_token(args) -> str | None:
     """The run's operator token: from --operator-token-file, else $FLOCKTRACK_DASHBOARD_TOKEN, else a new one
-    (its link is logged once, as Jupyter prints its token); --viewer-only: none (nobody can steer)."""
+    (its link is logged once, as Jupyter prints its token, with the port users open: --public-port, e.g. the
+    host port compose publishes the container's on); --viewer-only: none (nobody can steer)."""
     from .operator import TOKEN_ENV, new_token, operator_url
 
     if args.viewer_only:
@@ -115,7 +124,8 @@ def _operator_token(args) -> str | None:
     token = new_token()
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
     logging.getLogger("dashboards").info("operator link (steers the run; keep it private): %s",
-                                         operator_url(shown, args.port, token, tls=bool(args.tls_cert)))
+                                         operator_url(shown, args.public_port or args.port, token,
+                                                      tls=bool(args.tls_cert)))
     return token
 
 

@@ -298,9 +298,9 @@ class DashboardUI:
 
         @s.on_click()
         def _(event) -> None:  # click on the ground near a sensor selects it
-            self._pick(event.ray_origin, event.ray_direction)
+            self._pick(event.ray_origin, event.ray_direction, event.client_id)
 
-    def _pick(self, origin, direction) -> None:
+    def _pick(self, origin, direction, client_id: int | None = None) -> None:
         snap = self._last_snapshot
         if snap is None or origin is None or direction is None:
             return
@@ -316,7 +316,7 @@ class DashboardUI:
         d[~np.isfinite(d)] = np.inf
         i = int(np.argmin(d))
         if d[i] <= max(3 * self.marker_size, 0.15 * self.info.link_range if math.isfinite(self.info.link_range) else 3):
-            self.select(i)
+            self.select(i, client_id)
 
     _last_snapshot: Snapshot | None = None
 
@@ -325,12 +325,26 @@ class DashboardUI:
         """The tick the scene shows (None: none drawn yet)."""
         return self._last_scene_k
 
-    def select(self, i: int | None) -> None:
+    def select(self, i: int | None, client_id: int | None = None) -> None:
+        """Inspect sensor ``i`` (a click in tab ``client_id``'s scene; None: not a tab's doing). The inspector
+        is shared by every tab; only the clicking tab's own operator fields follow it (:meth:`_retarget`)."""
         with self._lock:
             self.selected = i
             self.dirty = True
         if i is not None and hasattr(self, "g_node") and self.g_node.value != str(i):
             self.g_node.value = str(i)
+        if i is not None:
+            self._retarget(client_id, i)
+
+    def _retarget(self, client_id: int | None, i: int) -> None:
+        """Tab ``client_id`` inspects sensor ``i``: if that tab is an operator's, its own "Sensor id" and
+        "Link a" follow. Another tab's choice — a viewer's above all — never touches them: the inspector is
+        on the shared GUI, the operator's fields are that operator's (None: a change made by this process,
+        which is nobody's tab)."""
+        panel = self.operators.panels.get(client_id) if client_id is not None else None
+        if panel is not None:
+            for h in (panel.g_kill_id, panel.g_link_a):
+                h.value = i
 
     @staticmethod
     def _segments(h, segs: np.ndarray, show: bool = True) -> None:
@@ -740,9 +754,7 @@ class DashboardUI:
                     self.selected = i
                     self.dirty = True
                     self._last_plot_k = None
-                for panel in list(self.operators.panels.values()):
-                    for h in (panel.g_kill_id, panel.g_link_a):
-                        h.value = i
+                self._retarget(event.client_id, i)   # that tab's own operator fields, nobody else's
 
     def _gui_display(self) -> None:
         """Folded: what the scene shows (links, range circles, estimates, trail) and the error colour scale."""

@@ -5,7 +5,7 @@
                             [--estimator NAME] [--rounds R] [--set section.key=value ...]
                             [--restart never|on-failure] [-v] [--out DIR]
     flocktrack design SCENARIO --out FILE
-    flocktrack fault VERB [name=value ...] [--run RUN --connect ENDPOINT] [--timeout S]
+    flocktrack fault VERB [name=value ...] [--run RUN] [--connect ENDPOINT] [--timeout S]
     flocktrack ps [--connect ENDPOINT] [--json]
     flocktrack logs [RUN] [MEMBER] [-f]
     flocktrack compose SCENARIO [--out DIR] [--network bridge|host] [--base-image NAME] [--secure --keys DIR]
@@ -138,32 +138,24 @@ def cmd_fault(args) -> int:
     from agent.wire import WireError, control_args
 
     from . import fault_client as fc
-    from .runs import find_local, local_runs
+    from .runs import find_local
 
     local = find_local(args.run) if args.connect is None else None
     try:
         kv = control_args(args.args)
         fc.check(args.verb, kv, local.n_sensors if local is not None else None)
-    except fc.UnknownVerbError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except fc.UsageError as exc:
+        print(f"error: {exc} (nothing sent)", file=sys.stderr)
         return fc.NO_ANSWER
     except (ValueError, WireError) as exc:
         detail = exc.detail if isinstance(exc, WireError) else str(exc)
         print(f"refused (nothing sent): {detail}", file=sys.stderr)
         return fc.REFUSED
-    run, connect, config = args.run, args.connect, args.config
-    if run is None or connect is None:
-        if local is None:
-            runs = local_runs()
-            if not runs:
-                why = "no run of this machine's launchers is going; give --run and --connect"
-            elif run is None:
-                why = f"{len(runs)} runs are going, say which with --run: {', '.join(e.run for e in runs)}"
-            else:
-                why = f"no local run {run!r}; give --connect for a run elsewhere"
-            print(f"error: {why}", file=sys.stderr)
-            return fc.NO_ANSWER
-        run, connect, config = local.run, connect or local.endpoint, config or local.config
+    target = _fault_target(args, local)
+    if isinstance(target, str):
+        print(f"error: {target}", file=sys.stderr)
+        return fc.NO_ANSWER
+    run, connect, config = target
     try:
         bus = ZenohBus(run, connect=connect, config_file=config)
     except Exception as exc:  # zenoh.ZError: nobody listening there
@@ -176,6 +168,40 @@ def cmd_fault(args) -> int:
         bus.close()
     print(f"{run}: {ans.text}", file=sys.stdout if ans.code == fc.APPLIED else sys.stderr)
     return ans.code
+
+
+def _fault_target(args, local) -> tuple[str, str, str | None] | str:
+    """(run, router endpoint, client config) to send a fault to, or why there is none: ``--run`` and
+    ``--connect`` as given; ``--connect`` alone: the only run on that router; else a local run's file."""
+    from .runs import local_runs
+
+    if args.connect is not None:
+        return (args.run, args.connect, args.config) if args.run is not None else _only_run_on(args.connect, args.config)
+    if local is not None:
+        return local.run, local.endpoint, args.config or local.config
+    runs = local_runs()
+    if not runs:
+        return "no run of this machine's launchers is going; give --connect (and --run if its router has several)"
+    if args.run is None:
+        return f"{len(runs)} runs are going, say which with --run: {', '.join(e.run for e in runs)}"
+    return f"no local run {args.run!r}; give --connect for a run elsewhere"
+
+
+def _only_run_on(connect: str, config: str | None) -> tuple[str, str, str | None] | str:
+    """The only run whose members hold tokens on the router at ``connect`` (``flocktrack ps --connect``'s
+    query), or why there is not exactly one."""
+    from .ps import runs_on
+
+    try:
+        names = sorted(runs_on(connect, config, listen_s=0.0))
+    except Exception as exc:  # zenoh.ZError: no router there
+        return f"cannot reach a router at {connect} ({exc})"
+    if not names:
+        return (f"no run on {connect} (no member holds a token there; a secure router answers a client about its "
+                f"own run only: give --run)")
+    if len(names) > 1:
+        return f"{len(names)} runs on {connect}, say which with --run: {', '.join(names)}"
+    return names[0], connect, config
 
 
 def cmd_ps(args) -> int:
@@ -262,12 +288,7 @@ def cmd_replay(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = _Parser(prog="flocktrack", description=__doc__.split("\n\n")[0])
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    v = sub.add_parser("validate", help="check a scenario file")
-    v.add_argument("scenario")
-    v.set_defaults(fn=cmd_validate)
+def _add_run(sub) -> None:
     r = sub.add_parser("run", help="run a scenario")
     r.add_argument("scenario")
     r.add_argument("--transport", choices=["inproc", "zenoh"], default="zenoh",
@@ -296,22 +317,31 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
     r.add_argument("--out", help="output directory (default: runs/<scenario>-<YYYYmmdd-HHMMSS>)")
     r.set_defaults(fn=cmd_run)
-    dg = sub.add_parser("design", help="solve and store a scenario's pre-run design (its estimator's design hook)")
-    dg.add_argument("scenario")
-    dg.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
-    dg.add_argument("--out", required=True)
-    dg.set_defaults(fn=cmd_design)
-    fl = sub.add_parser("fault", help="send a control verb to a running flock and report its answer "
-                                      "(exit 0 applied, 1 refused, 2 no answer)")
+
+
+def _add_fault(sub) -> None:
     from agent.wire import CONTROL_VERBS
 
+    fl = sub.add_parser("fault", help="send a control verb to a running flock and report its answer "
+                                      "(exit 0 applied, 1 refused, 2 no answer)",
+                        description="Send a control verb to a running flock, checked first (an unknown verb or "
+                                    "argument name: exit 2, nothing sent; a bad value: exit 1, nothing sent), and "
+                                    "report the run's answer: exit 0 applied (at tick k), 1 refused (with the "
+                                    "reason), 2 no answer within --timeout. outlier_burst has no answer (the "
+                                    "sensors apply it): it is reported as \"sent (no acknowledgement for this "
+                                    "verb: the sensors apply it)\", exit 0.")
     fl.add_argument("verb", help=", ".join(CONTROL_VERBS))
     fl.add_argument("args", nargs="*", help="name=value (TOML values), e.g. agent=3 or groups=[0,0,1,1]")
-    fl.add_argument("--run", help="the run name (default: the only run of this machine's launchers)")
+    fl.add_argument("--run", help="the run name (default: the only run of this machine's launchers, or with "
+                                  "--connect the only run on that router)")
     fl.add_argument("--connect", help="its router (default: the local run's)")
     fl.add_argument("--config", help="Zenoh client config (a secure run's: default the local run's)")
     fl.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the answer (default 5)")
     fl.set_defaults(fn=cmd_fault)
+
+
+def _add_inspection(sub) -> None:
+    """ps, logs, recover, metrics, replay: the commands that look at runs (going or recorded)."""
     ps = sub.add_parser("ps", help="the runs reachable on a router: name, tick, mode, members, endpoint")
     ps.add_argument("--connect", help="a router (default: every local launcher's)")
     ps.add_argument("--config", help="Zenoh client config for --connect")
@@ -339,6 +369,23 @@ def main(argv: list[str] | None = None) -> int:
     rp.add_argument("--dashboard", action="store_true", help="show the recording in the dashboard (time slider)")
     rp.add_argument("--dashboard-port", type=int, default=8080)
     rp.set_defaults(fn=cmd_replay)
+
+
+def parser() -> _Parser:
+    """The ``flocktrack`` command line: every sub-command, the ones of other modules registered by them."""
+    ap = _Parser(prog="flocktrack", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    v = sub.add_parser("validate", help="check a scenario file")
+    v.add_argument("scenario")
+    v.set_defaults(fn=cmd_validate)
+    _add_run(sub)
+    dg = sub.add_parser("design", help="solve and store a scenario's pre-run design (its estimator's design hook)")
+    dg.add_argument("scenario")
+    dg.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
+    dg.add_argument("--out", required=True)
+    dg.set_defaults(fn=cmd_design)
+    _add_fault(sub)
+    _add_inspection(sub)
     from . import compose as _compose
     from . import experiment as _experiment
     from . import image as _image
@@ -348,7 +395,11 @@ def main(argv: list[str] | None = None) -> int:
     _image.register(sub)
     _keys.register(sub)
     _experiment.register(sub)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
     try:
         return args.fn(args)
     except ScenarioError as exc:

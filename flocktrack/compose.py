@@ -183,39 +183,54 @@ def listen_endpoint(opts: ComposeOptions) -> str:
     return f"{'tls' if opts.secure else 'tcp'}/{where}:{opts.router_port}"
 
 
-def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> dict:
-    """The docker-compose document (a plain dict; ``$`` not yet escaped — see :func:`to_yaml`). The run's
-    inputs are configs read from the files :func:`input_path` names, relative to the compose file."""
-    if opts.network not in ("bridge", "host"):
-        raise ValueError(f"--network {opts.network!r}: bridge | host")
-    from agent.assemble import extra_processes
+SCENARIO_ARGS = ("--scenario", _conf("scenario"))
+DESIGN_ARGS = ("--design", _conf("design"))
 
-    run, n = sc.run.name, sc.sensors.n
-    host_net = opts.network == "host"
-    ep = endpoint(opts)
-    common = ["--connect", ep, "--run", run]
-    scen = ["--scenario", _conf("scenario")]
-    design = ["--design", _conf("design")]
-    sensor_policy = RestartPolicy(opts.restart, opts.max_restarts)
-    dash_port = opts.dashboard_port if host_net else DASHBOARD_PORT
-    build: dict[str, Any] = {"context": opts.context, "dockerfile": opts.dockerfile}
-    if host_net:
-        build["network"] = "host"
-    if opts.base_image:
-        build["args"] = {"BASE_IMAGE": opts.base_image}
 
-    # a secure service's own Zenoh identity: the config in the key directory it alone mounts
-    zconf = ["--config", f"{KEYS_MOUNT}/zenoh.json5"] if opts.secure else []
+@dataclass(frozen=True)
+class Deployment:
+    """What the services of one deployment share: the options, the run's name, its mode, and how a
+    service is written (:meth:`service`) and health-checked (:meth:`member_health`)."""
 
-    def member_health(member: str, extra: list[str] = ()) -> dict:
-        return _health(["--run", run, "--connect", ep, "--member", member, *extra], zconf, MEMBER_HEALTH)
+    opts: ComposeOptions
+    run: str
+    mode: str
 
-    def service(ident: str, command: list[str], *, restart: str, health: dict, depends: dict[str, str] | None = None,
-                configs: list[dict] | None = None, **extra) -> dict:
-        s: dict[str, Any] = {"image": opts.image, "build": dict(build), "init": True, "command": command}
+    @property
+    def host_net(self) -> bool:
+        return self.opts.network == "host"
+
+    @property
+    def common(self) -> list[str]:
+        """Every agent's ``--connect`` and ``--run``."""
+        return ["--connect", endpoint(self.opts), "--run", self.run]
+
+    @property
+    def zconf(self) -> list[str]:
+        """A secure service's own Zenoh identity: the config in the key directory it alone mounts."""
+        return ["--config", f"{KEYS_MOUNT}/zenoh.json5"] if self.opts.secure else []
+
+    def build(self) -> dict[str, Any]:
+        build: dict[str, Any] = {"context": self.opts.context, "dockerfile": self.opts.dockerfile}
+        if self.host_net:
+            build["network"] = "host"
+        if self.opts.base_image:
+            build["args"] = {"BASE_IMAGE": self.opts.base_image}
+        return build
+
+    def member_health(self, member: str, extra: list[str] = ()) -> dict:
+        """Healthy while ``member``'s liveliness token is on the router (:mod:`flocktrack.health`)."""
+        return _health(["--run", self.run, "--connect", endpoint(self.opts), "--member", member, *extra], self.zconf,
+                       MEMBER_HEALTH)
+
+    def service(self, ident: str, command: list[str], *, restart: str, health: dict,
+                depends: dict[str, str] | None = None, configs: list[dict] | None = None, **extra) -> dict:
+        """One service running ``command`` as Zenoh identity ``ident``; ``extra``: more service keys."""
+        opts = self.opts
+        s: dict[str, Any] = {"image": opts.image, "build": self.build(), "init": True, "command": command}
         if opts.user:
             s["user"] = opts.user
-        if host_net:
+        if self.host_net:
             s["network_mode"] = "host"
         if configs:
             s["configs"] = configs
@@ -232,77 +247,116 @@ def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> d
         s["stop_grace_period"] = STOP_GRACE
         return s
 
-    after_router = {"router": "service_healthy"}
-    after_recorder = {"router": "service_healthy", "recorder": "service_started"}
-    services: dict[str, dict] = {}
-    if opts.secure:
-        router_cmd = ["python", "-m", "flocktrack.router", "--config", f"{KEYS_MOUNT}/zenoh.json5"]
-    else:
-        router_cmd = ["python", "-m", "flocktrack.router", "--config", ROUTER_CONFIG]
-        if host_net or opts.router_port != ROUTER_PORT:
-            router_cmd += ["--listen", listen_endpoint(opts)]
-    services["router"] = service(
-        "router", router_cmd, restart="unless-stopped",
-        **({} if host_net else {"expose": [str(opts.router_port)]}),
-        health=_health(["--tcp", f"localhost:{opts.router_port}"], [], ROUTER_HEALTH))
-    data = f"{opts.data}:{DATA_DIR}" if opts.data else f"recordings:{DATA_DIR}"
-    services["recorder"] = service(
-        "recorder", ["python", "-m", "flocktrack.record", "--out", f"{DATA_DIR}/recording.mcap", "--summary", DATA_DIR,
-                     "--meta", _conf("meta"), *common, *zconf],
-        restart=docker_restart(RestartPolicy("never")), health=member_health("recorder/0"),
-        depends=after_router, configs=_mounts("meta"), volumes=[data])
-    dash_host = "0.0.0.0" if (opts.dashboard_public or not host_net) else "127.0.0.1"
-    tls = ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"] if opts.secure else []
-    services["dashboard"] = service(
-        "dashboard", ["python", "-m", "dashboards", "--port", str(dash_port), "--host", dash_host, *scen, *common,
-                      *zconf, *tls],
-        restart=docker_restart(RestartPolicy("on-failure", 3)),
-        # (the page of a secure run is HTTPS with a certificate of the run's CA: its token check suffices)
-        health=member_health("dashboard/0",
-                             [] if opts.secure else ["--http", f"http://localhost:{dash_port}/"]),
-        depends=after_router, configs=_mounts("scenario", "design"),
-        # its buttons kill processes and partition the flock: on the host's loopback only unless asked
-        **({} if host_net else
-           {"ports": [f"{'' if opts.dashboard_public else '127.0.0.1:'}{opts.dashboard_port}:{DASHBOARD_PORT}"]}))
-    services["target"] = service(
-        "target", ["python", "-m", "agent", "target", *scen, "--mode", mode, *common, *zconf],
-        restart=docker_restart(RestartPolicy("never")), health=member_health("target/0"),
-        depends=after_recorder, configs=_mounts("scenario"))
-    for i in range(n):
-        argv = ["python", "-m", "agent", "sensor", "--id", str(i), *scen, *design, "--mode", mode, *common,
-                *zconf]
-        services[f"sensor-{i}"] = service(
-            f"agent-{i}", _rejoin_on_restart(argv, f"sensor-{i}"), restart=docker_restart(sensor_policy),
-            health=member_health(f"agent/{i}"), depends=after_recorder,
-            configs=_mounts("scenario", "design"))
+
+AFTER_ROUTER = {"router": "service_healthy"}
+AFTER_RECORDER = {"router": "service_healthy", "recorder": "service_started"}
+
+
+def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> dict:
+    """The docker-compose document (a plain dict; ``$`` not yet escaped — see :func:`to_yaml`). The run's
+    inputs are configs read from the files :func:`input_path` names, relative to the compose file."""
+    if opts.network not in ("bridge", "host"):
+        raise ValueError(f"--network {opts.network!r}: bridge | host")
+    from agent.assemble import extra_processes
 
     extra = extra_processes(sc)          # e.g. the fusion solver of the UAV scenarios, as the launcher's plan
     if extra and opts.secure:
         raise KeysError(f"{scenario_label}: a secure deployment of a scenario with {', '.join(extra)} is not supported "
                         f"(no identity or ACL rules for it in `flocktrack keys`); deploy it without --secure")
-    for role in extra:
-        services[role] = service(
-            role, ["python", "-m", "agent", role, *scen, "--mode", mode, *common],
-            restart=docker_restart(RestartPolicy("never")), health=member_health(f"{role}/0"),
-            depends=after_recorder, configs=_mounts("scenario"))
-    world_deps = dict(after_recorder, target="service_started", **{f"sensor-{i}": "service_started" for i in range(n)},
-                      **{role: "service_started" for role in extra})
-    services["world"] = service(
-        "world", ["python", "-m", "topology", *scen, "--mode", mode, "--expect", "recorder/0",
-                  *[a for role in extra for a in ("--expect", f"{role}/0")],
-                  "--startup-timeout", str(STARTUP_TIMEOUT_S), *common, *zconf],
-        restart=docker_restart(RestartPolicy("never")), health=member_health("world/0"),
-        depends=world_deps, configs=_mounts("scenario"))
-
+    d = Deployment(opts, sc.run.name, mode)
+    n = sc.sensors.n
+    services = {"router": router_service(d), "recorder": recorder_service(d), "dashboard": dashboard_service(d),
+                **agent_services(d, n, extra), "world": world_service(d, n, extra)}
     doc = {
-        "x-flocktrack": {"run": run, "scenario": scenario_label, "sensors": n, "mode": mode,
-                         "endpoint": ep, "generated-by": f"flocktrack compose {scenario_label}"},
+        "x-flocktrack": {"run": d.run, "scenario": scenario_label, "sensors": n, "mode": mode,
+                         "endpoint": endpoint(opts), "generated-by": f"flocktrack compose {scenario_label}"},
         "services": services,
         "configs": {k: {"file": f"./{input_path(k)}"} for k in CONFIG_FILES},
     }
     if not opts.data:
         doc["volumes"] = {"recordings": {}}
     return doc
+
+
+def router_service(d: Deployment) -> dict:
+    """The Zenoh router every other service dials (the launcher's embedded router)."""
+    opts = d.opts
+    if opts.secure:
+        cmd = ["python", "-m", "flocktrack.router", "--config", f"{KEYS_MOUNT}/zenoh.json5"]
+    else:
+        cmd = ["python", "-m", "flocktrack.router", "--config", ROUTER_CONFIG]
+        if d.host_net or opts.router_port != ROUTER_PORT:
+            cmd += ["--listen", listen_endpoint(opts)]
+    return d.service("router", cmd, restart="unless-stopped",
+                     **({} if d.host_net else {"expose": [str(opts.router_port)]}),
+                     health=_health(["--tcp", f"localhost:{opts.router_port}"], [], ROUTER_HEALTH))
+
+
+def recorder_service(d: Deployment) -> dict:
+    """The recorder, writing to ``/data`` (the named volume, or ``--data``) and scoring the run there."""
+    data = f"{d.opts.data}:{DATA_DIR}" if d.opts.data else f"recordings:{DATA_DIR}"
+    return d.service(
+        "recorder", ["python", "-m", "flocktrack.record", "--out", f"{DATA_DIR}/recording.mcap", "--summary", DATA_DIR,
+                     "--meta", _conf("meta"), *d.common, *d.zconf],
+        restart=docker_restart(RestartPolicy("never")), health=d.member_health("recorder/0"),
+        depends=AFTER_ROUTER, configs=_mounts("meta"), volumes=[data])
+
+
+def dashboard_service(d: Deployment) -> dict:
+    """The dashboard, published on the host's loopback unless ``--dashboard-public``. The operator link it
+    logs names the port a user opens: the host's published port (``--public-port``) when that is not the
+    container's."""
+    opts = d.opts
+    port = opts.dashboard_port if d.host_net else DASHBOARD_PORT
+    host = "0.0.0.0" if (opts.dashboard_public or not d.host_net) else "127.0.0.1"
+    public = [] if port == opts.dashboard_port else ["--public-port", str(opts.dashboard_port)]
+    tls = ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"] if opts.secure else []
+    return d.service(
+        "dashboard", ["python", "-m", "dashboards", "--port", str(port), "--host", host, *public, *SCENARIO_ARGS,
+                      *d.common, *d.zconf, *tls],
+        restart=docker_restart(RestartPolicy("on-failure", 3)),
+        # (the page of a secure run is HTTPS with a certificate of the run's CA: its token check suffices)
+        health=d.member_health("dashboard/0", [] if opts.secure else ["--http", f"http://localhost:{port}/"]),
+        depends=AFTER_ROUTER, configs=_mounts("scenario", "design"),
+        # its buttons kill processes and partition the flock: on the host's loopback only unless asked
+        **({} if d.host_net else
+           {"ports": [f"{'' if opts.dashboard_public else '127.0.0.1:'}{opts.dashboard_port}:{DASHBOARD_PORT}"]}))
+
+
+def agent_services(d: Deployment, n: int, extra: list[str]) -> dict[str, dict]:
+    """The target, one service per sensor (``sensor-<i>``, rejoining when restarted) and the extra roles
+    (``extra``: e.g. ``fusion``)."""
+    mode, common, zconf = d.mode, d.common, d.zconf
+    sensor_policy = RestartPolicy(d.opts.restart, d.opts.max_restarts)
+    services = {"target": d.service(
+        "target", ["python", "-m", "agent", "target", *SCENARIO_ARGS, "--mode", mode, *common, *zconf],
+        restart=docker_restart(RestartPolicy("never")), health=d.member_health("target/0"),
+        depends=AFTER_RECORDER, configs=_mounts("scenario"))}
+    for i in range(n):
+        argv = ["python", "-m", "agent", "sensor", "--id", str(i), *SCENARIO_ARGS, *DESIGN_ARGS, "--mode", mode,
+                *common, *zconf]
+        services[f"sensor-{i}"] = d.service(
+            f"agent-{i}", _rejoin_on_restart(argv, f"sensor-{i}"), restart=docker_restart(sensor_policy),
+            health=d.member_health(f"agent/{i}"), depends=AFTER_RECORDER,
+            configs=_mounts("scenario", "design"))
+    for role in extra:
+        services[role] = d.service(
+            role, ["python", "-m", "agent", role, *SCENARIO_ARGS, "--mode", mode, *common],
+            restart=docker_restart(RestartPolicy("never")), health=d.member_health(f"{role}/0"),
+            depends=AFTER_RECORDER, configs=_mounts("scenario"))
+    return services
+
+
+def world_service(d: Deployment, n: int, extra: list[str]) -> dict:
+    """The world, started last; it waits for the recorder and the extra roles (its start barrier)."""
+    deps = dict(AFTER_RECORDER, target="service_started", **{f"sensor-{i}": "service_started" for i in range(n)},
+                **{role: "service_started" for role in extra})
+    return d.service(
+        "world", ["python", "-m", "topology", *SCENARIO_ARGS, "--mode", d.mode, "--expect", "recorder/0",
+                  *[a for role in extra for a in ("--expect", f"{role}/0")],
+                  "--startup-timeout", str(STARTUP_TIMEOUT_S), *d.common, *d.zconf],
+        restart=docker_restart(RestartPolicy("never")), health=d.member_health("world/0"),
+        depends=deps, configs=_mounts("scenario"))
 
 
 def _rejoin_on_restart(argv: list[str], name: str) -> list[str]:

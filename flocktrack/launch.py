@@ -157,6 +157,7 @@ class Launcher:
         self.dashboard_token = dashboard_token
         self._registered = False             # this run is in the machine's list (flocktrack/runs.py)
         self.ctl_bus = None
+        self.tick_seen = 0                   # the newest world/tick k (the tick a kill/restart answer names)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------ processes
@@ -273,6 +274,7 @@ class Launcher:
         self.ctl_bus.subscribe("control/kill", self._on_control)
         self.ctl_bus.subscribe("control/restart", self._on_control)
         self.ctl_bus.subscribe("world/event", self._on_world_event)
+        self.ctl_bus.subscribe("world/tick", self._on_tick)
         self.ctl_bus.declare_token("launcher/0")
         self._register()
         for c in self.plan():
@@ -323,15 +325,17 @@ class Launcher:
             self._spawn(c, rejoin=True)
             self._answer(msg, cmd.agent, None)
 
-    def _answer(self, msg, agent: int | None, refusal: str | None) -> None:
-        """A control's outcome on ``launcher/event``: applied (``refusal`` None) or refused, and why."""
-        from agent.wire import Control
+    def _on_tick(self, key: str, msg) -> None:
+        self.tick_seen = max(self.tick_seen, msg.k)
 
-        from agent.wire import request_id
+    def _answer(self, msg, agent: int | None, refusal: str | None) -> None:
+        """A control's outcome on ``launcher/event``: applied (``refusal`` None) or refused, and why, at the
+        newest tick the launcher has seen."""
+        from agent.wire import Control, request_id
 
         args = {"agent": agent, "applied": refusal is None, "reason": (refusal or "")[:300], **request_id(msg.args)}
         if self.ctl_bus is not None:
-            self.ctl_bus.publish("launcher/event", Control(k=0, verb=msg.verb, args=args))  # (the launcher keeps no tick)
+            self.ctl_bus.publish("launcher/event", Control(k=self.tick_seen, verb=msg.verb, args=args))
 
     def _on_world_event(self, key: str, msg) -> None:
         """Process-level faults of the plan (topology/faults.py): crash → SIGKILL (restart at heal),

@@ -1,9 +1,12 @@
 """``flocktrack ps``: the runs reachable on a router, from their members' liveliness tokens.
 
 A run is the set of tokens ``ft/<run>/alive/<member>`` (every role, the recorder, the launcher, a
-dashboard declare one); its tick is the newest ``ft/<run>/world/tick`` heard in a short listen. Without
-``--connect``, every run of this machine's launchers (flocktrack/runs.py) is asked on its own router;
-those files also give the mode and the run directory, which a router alone does not know.
+dashboard declare one); the sensors alive are its ``agent/<i>`` tokens. Its tick is the newest
+``ft/<run>/world/tick`` heard in a short listen, and that tick's ``n`` (its ``alive`` list has one entry
+per sensor) the flock's size. Without ``--connect``, every run of this machine's launchers
+(flocktrack/runs.py) is asked on its own router; those files also give the mode and the run directory,
+which nothing on a router tells (a run heard only through ``--connect`` shows mode ``?``, and its size
+``?`` if it ticked nothing during the listen).
 """
 
 from __future__ import annotations
@@ -49,14 +52,16 @@ def runs_on(endpoint: str, config_file: str | None = None, run: str | None = Non
     seen: dict[str, RunSeen] = {}
     try:
         scope = f"ft/{run}" if run else "ft/*"
-        ticks: dict[str, int] = {}
+        ticks: dict[str, tuple[int, int]] = {}   # run -> (newest k, its n)
 
         def on_tick(sample) -> None:
             run = str(sample.key_expr).split("/")[1]
             try:
-                ticks[run] = max(ticks.get(run, -1), decode("world/tick", sample.payload.to_bytes()).k)
+                t = decode("world/tick", sample.payload.to_bytes())
             except Exception:  # a bad sample tells no tick
-                pass
+                return
+            if t.k > ticks.get(run, (-1, 0))[0]:
+                ticks[run] = (t.k, t.n)
 
         sub = session.declare_subscriber(f"{scope}/world/tick", on_tick)
         time.sleep(listen_s)
@@ -69,9 +74,9 @@ def runs_on(endpoint: str, config_file: str | None = None, run: str | None = Non
             parts = str(reply.ok.key_expr).split("/", 3)   # ft / <run> / alive / <member>
             if len(parts) == 4:
                 seen.setdefault(parts[1], RunSeen(parts[1], endpoint)).members.add(parts[3])
-        for run, k in ticks.items():
+        for run, (k, n) in ticks.items():
             if run in seen:
-                seen[run].tick = k
+                seen[run].tick, seen[run].n_sensors = k, n
     finally:
         session.close()
     return seen

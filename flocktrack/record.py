@@ -252,10 +252,7 @@ def metrics_from_recording(path: str | Path, out_dir: str | Path | None = None, 
 _NOT_ROLES = frozenset({"recorder", "launcher", "dashboard"})
 
 
-def main(argv: list[str] | None = None) -> int:
-    from agent.bus import ZenohBus
-    from agent.runner import StopFlag, profiled, quick_gil_handoff
-
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m flocktrack.record")
     ap.add_argument("--run", required=True)
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447")
@@ -269,7 +266,100 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--summary", metavar="DIR", default=None,
                     help="after the run, score the recording into DIR/summary.json and DIR/metrics.csv "
                          "(what `flocktrack run` writes; a deployment without a launcher, e.g. compose, needs it)")
-    args = ap.parse_args(argv)
+    return ap
+
+
+class RecorderSession:
+    """The recorder role's loop: every payload the bus delivers into ``rec``, until ``world/end`` and the
+    roles that were still finishing have gone (:meth:`over`), a stop signal, or a write failure."""
+
+    def __init__(self, rec: McapRecorder, bus, out: str, linger: float, linger_max: float):
+        self.rec, self.bus, self.out = rec, bus, out
+        self.linger, self.linger_max = linger, linger_max
+        self.end_at: float | None = None      #: when world/end arrived (monotonic)
+        self.roles_up: set[str] = set()
+        self.failed: list[str] = []           #: why writing failed (empty: it did not)
+
+    def fail(self, exc: OSError) -> None:
+        """A full disk, a vanished directory: the recording stops cleanly with what is written."""
+        if not self.failed:
+            log.error("writing %s failed (%s): the recording stops at %d messages; `flocktrack recover %s` "
+                      "makes a complete file of them", self.out, exc.strerror or exc, self.rec.seq, self.out)
+        self.failed.append(exc.strerror or str(exc))
+
+    def on_raw(self, key: str, data: bytes) -> None:
+        if self.failed:
+            return
+        try:
+            self.rec.write_raw(key, data)
+        except OSError as exc:
+            return self.fail(exc)
+        if key == "world/end" and self.end_at is None:
+            self.end_at = time.monotonic()
+
+    def on_member(self, name: str, alive: bool) -> None:
+        if name.split("/")[0] in _NOT_ROLES:
+            return
+        (self.roles_up.add if alive else self.roles_up.discard)(name)
+
+    def over(self) -> bool:
+        """After world/end: the roles still finishing (e.g. the fusion solving its last measurements)
+        publish until they exit, so the file closes once every role's token is gone."""
+        if self.end_at is None:
+            return False
+        waited = time.monotonic() - self.end_at
+        return waited > self.linger_max or (waited > self.linger and not self.roles_up)
+
+    def loop(self, stop) -> None:
+        bus = self.bus
+        for pattern in wire.OBSERVED:      # every payload once: not its addressed copies
+            bus.subscribe_raw(pattern, self.on_raw)
+        bus.watch_members(self.on_member)
+        bus.declare_token("recorder/0")
+        while not stop.set and not self.over() and not self.failed:
+            bus.poll(0.05)
+            try:
+                self.rec.tick()
+            except OSError as exc:
+                self.fail(exc)
+        bus.poll(0)  # whatever is already queued
+
+    def close(self) -> None:
+        """Finish the file (its summary and indexes) and leave the bus."""
+        try:
+            self.rec.finish()
+        except OSError as exc:
+            self.fail(exc)
+        self.bus.close()
+
+
+def _score(out: str, summary_dir: str, failed: list[str]) -> None:
+    """``--summary``: the recording scored into ``summary_dir`` (a failure is added to ``failed``)."""
+    try:
+        s = metrics_from_recording(out, summary_dir)
+    except (OSError, ValueError) as exc:
+        log.error("scoring %s into %s failed: %s", out, summary_dir, exc)
+        failed.append(str(exc))
+    else:
+        log.info("wrote %s/summary.json (%s ticks scored)", summary_dir, s.get("ticks_seen"))
+
+
+def _write_stats(rec: McapRecorder, failed: list[str]) -> None:
+    """``$FLOCKTRACK_STATS_DIR/recorder_0.json``: what was recorded per key, dropped, and a write failure."""
+    import os
+
+    if os.environ.get("FLOCKTRACK_STATS_DIR"):
+        p = Path(os.environ["FLOCKTRACK_STATS_DIR"]) / "recorder_0.json"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(json.dumps({"recorded_by_key": dict(sorted(rec.counts.items())), "dropped": dict(rec.dropped),
+                                 "write_failed": failed[0] if failed else None}, indent=1))
+
+
+def main(argv: list[str] | None = None) -> int:
+    from agent.bus import ZenohBus
+    from agent.runner import StopFlag, profiled, quick_gil_handoff
+
+    args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     meta = json.loads(Path(args.meta).read_text()) if args.meta else {}
     stop = StopFlag().install()
@@ -279,81 +369,18 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"error: cannot record to {args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
-    bus = ZenohBus(args.run, connect=args.connect, config_file=args.config)
-    end_at: list[float] = []
-    roles_up: set[str] = set()
-
-    failed: list[str] = []
-
-    def fail(exc: OSError) -> None:
-        """A full disk, a vanished directory: the recording stops cleanly with what is written."""
-        if not failed:
-            log.error("writing %s failed (%s): the recording stops at %d messages; `flocktrack recover %s` "
-                      "makes a complete file of them", args.out, exc.strerror or exc, rec.seq, args.out)
-        failed.append(exc.strerror or str(exc))
-
-    def on_raw(key: str, data: bytes) -> None:
-        if failed:
-            return
-        try:
-            rec.write_raw(key, data)
-        except OSError as exc:
-            return fail(exc)
-        if key == "world/end" and not end_at:
-            end_at.append(time.monotonic())
-
-    def on_member(name: str, alive: bool) -> None:
-        if name.split("/")[0] in _NOT_ROLES:
-            return
-        (roles_up.add if alive else roles_up.discard)(name)
-
-    def over() -> bool:
-        """After world/end: the roles still finishing (e.g. the fusion solving its last measurements)
-        publish until they exit, so the file closes once every role's token is gone."""
-        if not end_at:
-            return False
-        waited = time.monotonic() - end_at[0]
-        return waited > args.linger_max or (waited > args.linger and not roles_up)
-
-    def loop() -> None:
-        for pattern in wire.OBSERVED:      # every payload once: not its addressed copies
-            bus.subscribe_raw(pattern, on_raw)
-        bus.watch_members(on_member)
-        bus.declare_token("recorder/0")
-        while not stop.set and not over() and not failed:
-            bus.poll(0.05)
-            try:
-                rec.tick()
-            except OSError as exc:
-                fail(exc)
-        bus.poll(0)  # whatever is already queued
-
+    session = RecorderSession(rec, ZenohBus(args.run, connect=args.connect, config_file=args.config), args.out,
+                              args.linger, args.linger_max)
     try:
-        profiled("recorder/0", loop)
+        profiled("recorder/0", lambda: session.loop(stop))
     finally:
-        try:
-            rec.finish()
-        except OSError as exc:
-            fail(exc)
-        bus.close()
+        session.close()
     log.info("recorded %d messages on %d keys to %s (dropped %s)", rec.seq, len(rec.counts), args.out,
              dict(rec.dropped))
-    if args.summary and not failed:
-        try:
-            s = metrics_from_recording(args.out, args.summary)
-        except (OSError, ValueError) as exc:
-            log.error("scoring %s into %s failed: %s", args.out, args.summary, exc)
-            failed.append(str(exc))
-        else:
-            log.info("wrote %s/summary.json (%s ticks scored)", args.summary, s.get("ticks_seen"))
-    import os
-
-    if os.environ.get("FLOCKTRACK_STATS_DIR"):
-        p = Path(os.environ["FLOCKTRACK_STATS_DIR"]) / "recorder_0.json"
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps({"recorded_by_key": dict(sorted(rec.counts.items())), "dropped": dict(rec.dropped),
-                                 "write_failed": failed[0] if failed else None}, indent=1))
-    return 1 if failed else 0
+    if args.summary and not session.failed:
+        _score(args.out, args.summary, session.failed)
+    _write_stats(rec, session.failed)
+    return 1 if session.failed else 0
 
 
 if __name__ == "__main__":

@@ -158,7 +158,8 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
             results = _zenoh_results(sc, out, launcher, rc, run, keys, t_end - t0)
             if on_results is not None:
                 on_results(*results)
-            print(f"the dashboard stays up at http://localhost:{dashboard_port} — Ctrl-C to quit", file=sys.stderr)
+            scheme = "https" if keys is not None else "http"   # a secure run's page is HTTPS (dashboards/tls.py)
+            print(f"the dashboard stays up at {scheme}://localhost:{dashboard_port} — Ctrl-C to quit", file=sys.stderr)
             while not launcher.stopping.is_set() and launcher.alive("dashboard/0"):
                 time.sleep(0.2)
     finally:

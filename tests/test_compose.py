@@ -436,6 +436,35 @@ def test_register_adds_the_compose_subcommand(tmp_path):
     assert "`flocktrack compose scenarios/demo.toml --dashboard-public`" in text
 
 
+@pytest.mark.parametrize("options, port, scheme", [
+    ({}, 8080, "http"),
+    ({"dashboard_port": 9090}, 9090, "http"),
+    ({"dashboard_port": 9090, "secure": True}, 9090, "https"),
+    ({"dashboard_port": 18001, "network": "host"}, 18001, "http"),
+])
+def test_the_dashboards_logged_operator_link_names_the_port_a_user_opens(tmp_path, monkeypatch, caplog, options,
+                                                                          port, scheme):
+    """In a bridge network the dashboard listens on 8080 inside its container and the host publishes it on
+    --dashboard-port: the command then carries that port (--public-port), and the operator link the container
+    logs — the one a user copies from `docker compose logs dashboard` — names it (https for --secure)."""
+    import logging
+
+    from dashboards.__main__ import operator_token, parser
+
+    monkeypatch.delenv("FLOCKTRACK_DASHBOARD_TOKEN", raising=False)
+    cmd = load(compose.render(DEMO, tmp_path, **options)["docker-compose.yml"])["services"]["dashboard"]["command"]
+    assert cmd[:3] == ["python", "-m", "dashboards"]
+    published = options.get("network") != "host" and port != compose.DASHBOARD_PORT
+    assert ("--public-port" in cmd) == published, cmd
+    if published:
+        assert cmd[cmd.index("--public-port") + 1] == str(port)
+    with caplog.at_level(logging.INFO, logger="dashboards"):
+        token = operator_token(parser().parse_args(cmd[3:]))
+    ws = scheme.replace("http", "ws")
+    assert f"{scheme}://localhost:{port}/?websocket={ws}://localhost:{port}/operator/{token}" in caplog.text, \
+        caplog.text
+
+
 # ============================================================================ router and health processes
 
 def _start_router(port: int, *extra: str) -> subprocess.Popen:

@@ -34,9 +34,9 @@ def _report_camera(ws) -> None:
                                     "up_direction": [0.0, 0.0, 1.0]}))
 
 
-def _press(ws, uuid: str) -> None:
-    """What the page sends when a button is clicked."""
-    ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": True}}))
+def _press(ws, uuid: str, value=True) -> None:
+    """What the page sends when a button is clicked (or, with ``value``, a field or dropdown changed)."""
+    ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": value}}))
 
 
 def _wait(cond, timeout_s: float = 20.0) -> bool:
@@ -74,6 +74,51 @@ def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_th
         op.close()
         assert _wait(lambda: ui.operators.panels == {})           # its controls go with its tab
         assert ui.operators.counters == {"viewer_tabs": 1, "wrong_tokens": 1, "operator_tabs": 1}
+    finally:
+        for ws in socks:
+            ws.close()
+        ui.stop()
+
+
+def test_a_viewer_inspecting_another_sensor_does_not_retarget_the_operators_controls():
+    """The inspector's "Sensor" dropdown is on the shared GUI (every tab sees the selection); only the
+    operator's own choice there, or its own click in the scene, moves its "Sensor id" and "Link a" — a
+    viewer's never does, so a viewer cannot make the operator's next Kill hit another sensor."""
+    from dashboards.live import DashboardUI
+
+    sent: list = []
+    ui = DashboardUI(RunInfo(n=6, link_range=12.0, name="auth"), port=free_port(), live=True,
+                     send_control=lambda v, a: sent.append((v, a)), operator_token="the-token")
+    socks = []
+    try:
+        viewer = _connect(ui.port, "/")
+        op = _connect(ui.port, "/operator/the-token")
+        socks += [viewer, op]
+        assert _wait(lambda: len(ui.operators.panels) == 1 and len(ui.server.get_clients()) == 2)
+        (op_id, panel), = ui.operators.panels.items()
+        viewer_id = next(c for c in ui.server.get_clients() if c != op_id)
+
+        def fields() -> tuple[int, int]:
+            return panel.g_kill_id.value, panel.g_link_a.value
+
+        assert fields() == (0, 0)
+        _press(viewer, ui.g_node._impl.uuid, "3")                      # the viewer inspects sensor 3 ...
+        assert _wait(lambda: ui.selected == 3 and ui.g_node.value == "3")
+        time.sleep(1.0)
+        assert fields() == (0, 0)                                      # ... the operator's fields stay
+        ui.select(4, viewer_id)                                        # (a viewer's click in its scene)
+        assert ui.selected == 4 and fields() == (0, 0)
+        _press(viewer, panel.g_kill_id._impl.uuid, 5)                  # nor can it write them itself
+        time.sleep(1.0)
+        assert fields() == (0, 0)
+        _press(op, ui.g_node._impl.uuid, "2")                          # the operator's own choice moves them
+        assert _wait(lambda: fields() == (2, 2)), fields()
+        ui.select(5, op_id)                                            # and so does its click in the scene
+        assert fields() == (5, 5)
+        _press(viewer, ui.g_node._impl.uuid, "1")                      # a viewer's choice after it: still not
+        assert _wait(lambda: ui.g_node.value == "1")
+        time.sleep(1.0)
+        assert fields() == (5, 5) and sent == []
     finally:
         for ws in socks:
             ws.close()

@@ -405,10 +405,13 @@ class LiveDashboardOn:
     """A Zenoh router in this process, the live dashboard (``python -m dashboards --run …``, the command the
     launcher spawns) connected to it, and our own client to publish what a run would — message by message,
     so that a test can write exactly the awkward stream it wants (no run reproduces a starved machine on
-    demand). Entered once the dashboard is subscribed (its liveliness token is up) and serving."""
+    demand). Entered once the dashboard is subscribed (its liveliness token is up) and serving. ``record``:
+    a recording file — the run's recorder (``python -m flocktrack.record``) records the bus there, as it
+    does in a run, until the exit."""
 
-    def __init__(self, run: str, scenario: Path = DEMO, log: Path | None = None, env: dict | None = None):
-        self.run, self.scenario, self.log, self.env = run, scenario, log, env
+    def __init__(self, run: str, scenario: Path = DEMO, log: Path | None = None, env: dict | None = None,
+                 record: Path | None = None):
+        self.run, self.scenario, self.log, self.env, self.record = run, scenario, log, env, record
 
     def __enter__(self):
         import subprocess
@@ -424,13 +427,17 @@ class LiveDashboardOn:
                                       f"tcp/127.0.0.1:{zport}", "--port", str(self.port), "--scenario",
                                       str(self.scenario)], cwd=str(ROOT), stdout=self._out, stderr=subprocess.STDOUT,
                                      env=dict(os.environ, **(self.env or {})))
+        self.recorder = None if self.record is None else subprocess.Popen(
+            [sys.executable, "-m", "flocktrack.record", "--run", self.run, "--connect", f"tcp/127.0.0.1:{zport}",
+             "--out", str(self.record)], cwd=str(ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.bus = ZenohBus(self.run, connect=f"tcp/127.0.0.1:{zport}")
         members: set[str] = set()
         self.bus.watch_members(lambda name, alive: members.add(name) if alive else members.discard(name))
+        wanted = {"dashboard/0"} | ({"recorder/0"} if self.recorder else set())
         end = time.monotonic() + 120      # it imports Viser and starts serving before it subscribes
-        while "dashboard/0" not in members and time.monotonic() < end and self.proc.poll() is None:
+        while not wanted <= members and time.monotonic() < end and self.proc.poll() is None:
             self.bus.poll(0.2)
-        assert "dashboard/0" in members, f"the dashboard never subscribed (exit code {self.proc.poll()})"
+        assert wanted <= members, f"{wanted - members} never subscribed (dashboard exit code {self.proc.poll()})"
         assert _wait_port(self.port, 60)
         return self
 
@@ -441,11 +448,14 @@ class LiveDashboardOn:
 
     def __exit__(self, *exc):
         self.bus.close()
-        self.proc.terminate()
-        try:
-            self.proc.wait(15)
-        except Exception:
-            self.proc.kill()
+        for proc in (self.proc, self.recorder):   # (the recorder last: it records to the dashboard's end)
+            if proc is None:
+                continue
+            proc.terminate()                       # (SIGTERM: the dashboard writes its stats, the recorder
+            try:                                   # finishes its file)
+                proc.wait(15)
+            except Exception:
+                proc.kill()
         if self.log:
             self._out.close()
         self.router.close()
@@ -739,15 +749,22 @@ def test_readmes_main_job_as_a_user_runs_it_on_a_loaded_machine(tmp_path):
     assert f"results in {out}/" in proc.stdout.read()
 
 
-def test_only_the_operator_link_shows_and_works_the_controls():
-    """Read-only by default: a plain page and a page with a wrong token show the flock but no control at all,
-    and nothing reaches control/**; the operator link (the run's token in the websocket path) shows them,
-    and its click is published."""
+def test_only_the_operator_link_shows_and_works_the_controls(tmp_path):
+    """Read-only by default: a plain page and a page with a wrong token show the flock but no control at all;
+    what the viewer does (inspecting another sensor) leaves the operator's fields alone, and nothing it does
+    reaches control/** — neither a live subscriber nor the run's recording sees a control message before the
+    operator's click. The operator link (the run's token in the websocket path) shows the controls and its
+    click is published; the wrong token is refused and counted in the dashboard's stats file."""
     _require_browser()
+    import json
+
     from playwright.sync_api import sync_playwright
 
-    token = "s3cret-operator-token"
-    with LiveDashboardOn("auth", env={TOKEN_ENV: token}) as dash, sync_playwright() as p:
+    from flocktrack.record import read_recording
+
+    token, recording, stats = "s3cret-operator-token", tmp_path / "recording.mcap", tmp_path / "stats"
+    env = {TOKEN_ENV: token, "FLOCKTRACK_STATS_DIR": str(stats)}
+    with LiveDashboardOn("auth", env=env, record=recording) as dash, sync_playwright() as p:
         got: list = []
         dash.bus.subscribe("control/**", lambda key, m: got.append((key, m.args)))
         browser, viewer, errors = _open_live_page(p, dash)
@@ -759,12 +776,30 @@ def test_only_the_operator_link_shows_and_works_the_controls():
             for name in ("Kill sensor", "Pause", "Drop link", "Inject", "Set link loss"):
                 assert page.get_by_role("button", name=name).count() == 0, name
             assert "Inspect" in page.inner_text("body")         # the read-only panels are there
+        # the viewer inspects sensor 3: the shared inspector follows in the operator's tab, its fields do not
+        viewer.get_by_label("Sensor", exact=True).click()
+        viewer.get_by_role("option", name="3", exact=True).click()
+        end = time.monotonic() + 60
+        while op.get_by_label("Sensor", exact=True).input_value() != "3" and time.monotonic() < end:
+            op.wait_for_timeout(250)
+        assert op.get_by_label("Sensor", exact=True).input_value() == "3"
+        op.wait_for_timeout(1500)                               # (time for any update that would follow)
+        assert op.get_by_label("Sensor id").input_value() == "0" and op.get_by_label("Link a").input_value() == "0"
+        viewer.get_by_role("button", name="Reset view").click()
         dash.bus.poll(0.5)
         assert got == []
+        t_click = time.time_ns()
         op.get_by_role("button", name="Kill sensor").click()
         end = time.monotonic() + 30
         while not got and time.monotonic() < end:
             dash.bus.poll(0.2)
-        assert got == [("control/kill", {"agent": 0})], got
+        assert got == [("control/kill", {"agent": 0})], got   # sensor 0: the operator's own choice
         assert not errors
         browser.close()
+    # in the recording: the operator's kill and nothing else on control/**, nothing before its click
+    controls = [(key, m.args, t) for key, m, t in read_recording(recording).messages if key.startswith("control/")]
+    assert [(key, args) for key, args, _ in controls] == [("control/kill", {"agent": 0})], controls
+    assert controls[0][2] >= t_click
+    # the dashboard's stats file (written as it stops): the wrong token was refused and counted
+    role = json.loads((stats / "dashboard_0.json").read_text())["role"]
+    assert role["wrong_tokens"] == 1 and role["operator_tabs"] >= 1 and "refused_controls" not in role, role

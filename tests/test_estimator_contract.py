@@ -155,3 +155,60 @@ def test_the_toy_runs_through_the_cli_with_its_own_key(tmp_path, capsys):
     assert "[estimator.gain] must be in (0, 1], got 3.0" in capsys.readouterr().err
     with pytest.raises(ScenarioError, match=r"estimator\.gian.*did you mean `gain`"):
         load_scenario(scen, **{"estimator.name": "toy_average", "estimator.gian": 0.3})
+
+
+# ============================================================================= the fusion role's estimators
+
+def _fusion_records(n: int = 60):
+    from agent.models_uav import UavRelativeSim
+
+    stream = UavRelativeSim().generate(3.0, np.random.default_rng(7))
+    return [stream.record(int(i)) for i in stream.arrival_order()[:n]]
+
+
+def _fusion_built(name: str):
+    from agent.estimators.registry import build_fusion
+
+    return build_fusion({"estimator": name}, "contract.toml")[1]
+
+
+@pytest.mark.parametrize("name", sorted(registry.fusion_specs()))
+def test_every_fusion_estimator_streams_deterministically_and_survives_hostile_measurements(name):
+    """Each ``[fusion] estimator`` from its spec's defaults: finite estimates over a real stream, bit for bit
+    the same twice; a malformed measurement is refused where it is made (never reaches the window); a
+    gross outlier and a measurement too late for the window leave the estimate finite; an empty window
+    says so instead of returning numbers."""
+    from agent.estimators.relative_measurement import RelativeMeasurement
+
+    recs = _fusion_records()
+    runs = []
+    for _ in range(2):
+        est = _fusion_built(name)
+        with pytest.raises(RuntimeError):
+            est.solve()                                   # nothing to estimate from yet
+        runs.append([est.update(r).newest.copy() for r in recs])
+    assert all(np.isfinite(x).all() for x in runs[0])
+    assert all(np.array_equal(a, b) for a, b in zip(*runs))
+    for bad in (dict(z=[np.nan, 0.0]), dict(z=[1.0, 2.0, 3.0]), dict(R=[[1.0, 0.0], [0.0, -1.0]]),
+                dict(gps=None)):
+        kw = dict(agent=1, t=recs[-1].t, z=[1.0, 2.0], R=np.eye(2), gps=[0.0, 0.0], gps_R=np.eye(2)) | bad
+        with pytest.raises(ValueError):
+            RelativeMeasurement(**kw)
+    last = recs[-1]
+    huge = RelativeMeasurement(agent=last.agent, t=last.t + 0.01, z=last.z + 1e6, R=last.R, gps=last.gps,
+                               gps_R=last.gps_R)
+    late = RelativeMeasurement(agent=last.agent, t=recs[0].t - 10.0, z=last.z, R=last.R, gps=last.gps,
+                               gps_R=last.gps_R)
+    for r in (huge, late):
+        assert np.isfinite(est.update(r).newest).all()
+
+
+@pytest.mark.parametrize("name", sorted(registry.fusion_specs()))
+def test_every_fusion_estimator_refuses_a_bad_key_with_file_key_and_fix(name):
+    from agent.estimators.registry import build_fusion
+
+    spec = registry.fusion_specs()[name]
+    with pytest.raises(ScenarioError) as e:
+        build_fusion({"estimator": name, "no_such_key": 1}, "contract.toml")
+    assert e.value.source == "contract.toml" and e.value.key == "fusion.no_such_key" and e.value.fix
+    assert spec.param_names()        # its [fusion] keys are the schema the error lists

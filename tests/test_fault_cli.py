@@ -4,6 +4,7 @@ exit code (0 applied, 1 refused, 2 no answer), the runs found without copying na
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -80,7 +81,7 @@ def test_fault_ps_and_logs_on_two_live_runs(tmp_path, monkeypatch, capsys):
         assert rc == 1 and f"no live fault {fid + 50}" in text, text
         # the launcher's verbs: kill, then restart — both acknowledged, and the member is back
         rc, text = _fault(capsys, "kill", "agent=1", *on_a)
-        assert rc == 0 and "agent/1 killed" in text, text
+        assert rc == 0 and re.search(r"applied at tick \d+: agent/1 killed", text), text
         rc, text = _fault(capsys, "kill", "agent=1", *on_a)
         assert rc == 1 and "agent/1 is not running" in text, text
         rc, text = _fault(capsys, "restart", "agent=1", *on_a, "--timeout", "30")
@@ -104,6 +105,48 @@ def test_fault_ps_and_logs_on_two_live_runs(tmp_path, monkeypatch, capsys):
     keys = {k for k, _m, _t in read_recording(tmp_path / "a" / "recording.mcap").messages if k.startswith("control/")}
     assert keys == {"control/partition", "control/link_loss", "control/inject", "control/heal_fault", "control/kill",
                     "control/restart"}, keys
+
+
+@pytest.mark.slow
+def test_ps_and_fault_find_a_run_through_connect_alone(tmp_path, monkeypatch, capsys):
+    """With nothing local to go by (this process reads another, empty runtime directory), ``ps --connect EP``
+    lists the run on that router — its name, tick, members and size from its ticks; its mode, which nothing
+    on a router tells, ``?`` — and ``fault --connect EP`` without ``--run`` sends to the only run there."""
+    rt = tmp_path / "runtime"
+    monkeypatch.setenv("FLOCKTRACK_RUNTIME_DIR", str(tmp_path / "elsewhere"))
+    proc = _start(tmp_path / "a", dict(os.environ, FLOCKTRACK_RUNTIME_DIR=str(rt)))
+    try:
+        end = time.monotonic() + 120
+        while not list(rt.glob("*.json")) and time.monotonic() < end:
+            time.sleep(0.5)
+        entry = json.loads(next(rt.glob("*.json")).read_text())
+        ep = entry["endpoint"]
+        runs: list[dict] = []
+        while time.monotonic() < end:
+            assert main(["ps", "--connect", ep, "--json"]) == 0
+            runs = json.loads(capsys.readouterr().out)
+            if runs and runs[0]["tick"] is not None and runs[0]["sensors"] == "3/3":
+                break
+            time.sleep(1.0)
+        assert len(runs) == 1 and runs[0]["run"] == entry["run"] and runs[0]["endpoint"] == ep, runs
+        r = runs[0]
+        assert r["tick"] >= 0 and r["sensors"] == "3/3" and r["mode"] == "?" and r["out"] == "", r
+        assert {"world/0", "target/0", "recorder/0", "launcher/0", "agent/0", "agent/1", "agent/2"} <= set(r["members"])
+        assert main(["ps", "--connect", ep]) == 0
+        table = capsys.readouterr().out
+        assert entry["run"] in table and "3/3" in table and ep in table, table
+
+        rc, text = _fault(capsys, "pause", "--connect", ep)
+        assert rc == 0 and f"{entry['run']}: applied: pause at tick" in text, text
+        rc, text = _fault(capsys, "kill", "agnet=1", "--connect", ep)
+        assert rc == 2 and "did you mean 'agent'?" in text and "nothing sent" in text, text
+        rc, text = _fault(capsys, "resume", "--connect", ep)
+        assert rc == 0 and "applied: resume at tick" in text, text
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(120)
+    keys = {k for k, _m, _t in read_recording(tmp_path / "a" / "recording.mcap").messages if k.startswith("control/")}
+    assert keys == {"control/pause", "control/resume"}, keys
 
 
 def test_logs_follow_a_growing_log_until_the_run_is_over(tmp_path):

@@ -8,7 +8,7 @@ import ast
 from collections.abc import Iterator
 from pathlib import Path
 
-from agent.estimators.registry import specs
+from agent.estimators.registry import fusion_specs, specs
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("agent", "topology", "dashboards", "flocktrack")
@@ -136,9 +136,10 @@ def test_no_private_name_is_imported_across_modules():
 def test_no_estimator_is_named_outside_its_own_module():
     """The registry, the scenario loader, the CLI, the design and the metrics read the specs: no other
     module of the runtime names an estimator (as a string, or by importing its module)."""
-    names = set(specs())
-    own = {Path(__import__(s.build.__module__, fromlist=["x"]).__file__).resolve() for s in specs().values()}
-    est_modules = {s.build.__module__ for s in specs().values()}
+    every = [*specs().values(), *fusion_specs().values()]     # the flock's estimators and the fusion role's
+    names = {s.name for s in every}
+    own = {Path(__import__(s.build.__module__, fromlist=["x"]).__file__).resolve() for s in every}
+    est_modules = {s.build.__module__ for s in every}
     bad = []
     for m, p in MODULES.items():
         if p.resolve() in own or m.startswith("agent.estimators."):

@@ -42,7 +42,7 @@ no peer does every tick — it keeps estimating from its own data.
 
 Window and arrival cost: as in :class:`robust_mhe.RobustMHE` — at the end of a tick with N ≥ W nodes the
 oldest leaves (and, chained, the next ones of the same UAV); its owner folds it into the arrival cost with
-:func:`robust_mhe.fold_node` at the consensus solution (the others take the result over in the next round 0)
+:func:`robust_window.fold_node` at the consensus solution (the others take the result over in the next round 0)
 and the scale σ̂ (δ = c·σ̂) moves with it.
 """
 
@@ -56,9 +56,9 @@ import numpy as np
 
 from .base import Estimator, Payload, TickContext
 from .riccati import huber_curvature, huber_psi, predict, white_noise_acceleration
-from .robust_mhe import HUBER_C, ArrivalCost, RobustScale, fold_node
+from .robust_window import HUBER_C, ArrivalCost, RobustScale, fold_node
 from .son_layout import motion_weights
-from .sum_of_norms import RelativeMeasurement
+from .relative_measurement import RelativeMeasurement
 
 __all__ = ["AdmmFusionNode", "ArrivalRecord", "run_lockstep"]
 

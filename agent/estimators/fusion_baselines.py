@@ -13,7 +13,7 @@ estimator:
   Huber M-estimation measurement update (iteratively reweighted, :func:`riccati.information_update`
   with weights ψ(r)/r on the whitened innovation) and the same tuning-free threshold as the robust
   moving-horizon estimator (δ = 1.345·σ̂, σ̂ the MAD of its whitened innovations,
-  :class:`robust_mhe.RobustScale`).
+  :class:`robust_window.RobustScale`).
 * :class:`BatchLeastSquares` — least squares (δ = ∞) on the sum-of-norms estimator's own window and
   graph (same W, motion model, whitening), i.e. the paper's BLS on the same 15-measurement window.
 """
@@ -26,7 +26,8 @@ import math
 import numpy as np
 
 from .riccati import huber_irls_weight, information_update, predict, white_noise_acceleration
-from .sum_of_norms import RelativeMeasurement, Result, SumOfNormsEstimator, whitener
+from .relative_measurement import RelativeMeasurement, whitener
+from .sum_of_norms import Result, SumOfNormsEstimator
 
 
 class KalmanCV:
@@ -133,7 +134,7 @@ class RobustKalmanCV(KalmanCV):
 
     def __init__(self, q: float = 1.0, max_lateness: float = 1.0, v0_sigma: float = 20.0, c: float = 1.345,
                  delta: float | None = None, scale_window: int = 300, irls_iter: int = 10):
-        from .robust_mhe import RobustScale
+        from .robust_window import RobustScale
 
         super().__init__(q=q, max_lateness=max_lateness, v0_sigma=v0_sigma)
         self.scale = RobustScale(scale_window, c=c)

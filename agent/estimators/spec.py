@@ -115,6 +115,10 @@ class FusionSpec:
     check: Callable[[str, Any], None] = _no_fusion_check
     default: bool = False        #: the estimator of a [fusion] table that names none (one spec)
     doc: str = field(default="", compare=False)
+    #: ``[fusion] mode = "distributed"``: UAV i's node from the built estimator (its settings), ``records``
+    #: (tick → that UAV's own measurements), ``iterations`` and ``rho`` of the consensus, and the tick ``T``;
+    #: None: this estimator runs centrally only
+    distributed: Callable[..., Any] | None = field(default=None, compare=False)
 
     def param_names(self) -> list[str]:
         return list(self.params.__dataclass_fields__)

@@ -14,7 +14,7 @@ from collections import Counter
 import numpy as np
 
 from ..bus import Bus
-from ..wire import Control, Estimate, Message, State, Tick, Truth
+from ..wire import Control, Estimate, Message, State, Tick, Truth, WireError, fault_event
 from .common import Role
 
 
@@ -126,15 +126,18 @@ class TargetRole(Role):
 
     def _on_world_event(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Control)
-        if msg.verb == "fault" and msg.args.get("kind") == "evade":
-            fid, acc = msg.args.get("id"), msg.args.get("accel", 2.0)
-            if not isinstance(fid, int) or isinstance(acc, bool) or not isinstance(acc, (int, float)) \
-                    or abs(acc) > 1e3:
-                return
-            if msg.args.get("phase") == "start":
-                self._evade[fid] = float(acc)
+        if msg.verb != "fault":
+            return
+        try:
+            ev = fault_event(msg.args)          # typed and bounded by wire.py (|accel| ≤ MAX_EVADE_ACCEL)
+        except WireError:
+            self.counters["rejected_events"] += 1
+            return
+        if ev.kind == "evade":
+            if ev.phase == "start":
+                self._evade[ev.id] = ev.accel
             else:
-                self._evade.pop(fid, None)
+                self._evade.pop(ev.id, None)
 
     def _evasive(self) -> None:
         """Evasive manoeuvre: an extra acceleration ⟂ to the velocity (a hard turn) while active."""

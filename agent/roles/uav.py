@@ -16,7 +16,7 @@ from collections import Counter
 import numpy as np
 
 from ..bus import Bus
-from ..estimators.sum_of_norms import RelativeMeasurement
+from ..estimators.relative_measurement import RelativeMeasurement
 from ..wire import Meas, Message, State, Tick, Truth
 from .common import Role
 from .sensor import SensorRole
