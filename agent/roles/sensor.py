@@ -15,9 +15,7 @@ a finished round or tick are counted as late and dropped. What the radio and the
 payloads and the measurement is emulated by :class:`agent.link_emulation.LinkEmulator`.
 
 A restarted sensor (``rejoin``) takes up the world's clock at the first tick it sees and starts its filter
-from its neighbours' estimates, not from its prior x̂₀: every sensor hands its last estimate to a sensor
-whose liveliness token (re)appears (``agent/i/to/j/estimate``), and the rejoining sensor, once listed alive,
-waits — up to its deadline — for those of its current neighbours before its first tick.
+from its neighbours' estimates, not from its prior x̂₀ (:mod:`agent.roles.rejoin`).
 """
 
 from __future__ import annotations
@@ -35,11 +33,9 @@ from ..models import LinearSensor, integrate_double_integrator
 from ..wire import (Control, Estimate, Meas, Message, State, Tick, Truth, WireError, Xchg, command, estimate_inbox,
                     estimate_key, fault_event, inbox, xchg_key)
 from .common import Role
+from .rejoin import Rejoin
 
 log = logging.getLogger(__name__)
-
-#: a rejoining sensor starts from peer estimates at most this many ticks older than its first tick
-JOIN_FRESH_TICKS = 3
 
 
 class SensorRole(Role):
@@ -63,12 +59,9 @@ class SensorRole(Role):
         self._nbrs: list[int] = []
         self._out: list[str] = []       # this tick's exchange keys: one per sensor that hears us, + observers'
         self._dead: set[int] = set()
-        self.rejoin, self._joining = bool(rejoin), False
-        self._join_pending = self._join_forced = False   # rejoining: waiting for the neighbours' estimates
-        self._last_estimate: Estimate | None = None       # handed to a sensor that (re)appears
         self._sat_out_last = -2   # the last tick sat out (a log line when a stretch begins)
-        self._peer_est: dict[int, Estimate] = {}   # a rejoining sensor's restart: each peer's newest estimate
         self.counters: Counter = Counter()
+        self.join = Rejoin(self.i, rejoin, self.counters)   # a restart's way back, and the handover to others
         self.link = LinkEmulator(self.i, self.seed, self._accept_xchg, time.monotonic, noise_factor(sensor),
                                  self.counters)
 
@@ -76,7 +69,7 @@ class SensorRole(Role):
         bus.subscribe("world/tick", self._on_tick)
         bus.subscribe("target/truth", self._on_truth)
         bus.subscribe(inbox(self.i), self._on_xchg)
-        if self.rejoin:
+        if self.join.restarted:
             bus.subscribe(estimate_inbox(self.i), self._on_peer_estimate)
         bus.subscribe("control/outlier_burst", self._on_outlier_burst)
         bus.subscribe("world/event", self._on_world_event)
@@ -87,7 +80,7 @@ class SensorRole(Role):
 
     @property
     def waiting(self) -> bool:
-        return self.r >= 0 or self._join_pending
+        return self.r >= 0 or self.join.pending
 
     # ------------------------------------------------------------------ the world: ticks, truth, membership
     def _on_tick(self, key: str, msg: Message) -> None:
@@ -95,10 +88,10 @@ class SensorRole(Role):
         if msg.positions.shape[1] != self.q.size or msg.k >= self.ticks:
             self.counters["rejected_ticks"] += 1  # not our world: wrong dimension, or a tick beyond the run
             return
-        if self.rejoin and not self._joining and msg.k > self.k and msg.n > self.i:
+        if self.join.takes_up(msg, self.k):
             # a restarted process joining a running flock: take up the world's clock and our last
             # known position, and re-initialise the filter from the neighbours' estimates (_begin)
-            self.k, self._joining = msg.k, True
+            self.k = msg.k
             log.info("agent/%d: rejoining the flock at tick %d", self.i, msg.k)
             self.q = np.array(msg.positions[self.i][: self.q.size], float)
             self.p = np.zeros_like(self.q)
@@ -127,11 +120,9 @@ class SensorRole(Role):
         if role != "agent":
             return
         (self._dead.discard if alive else self._dead.add)(ident)
-        if alive and ident != self.i and self._last_estimate is not None:
-            # a sensor (re)appeared — restarted, or back after a router restart: it may be rejoining, and
-            # then it starts from its neighbours' estimates (_reinitialise); one message, ignored otherwise
-            self.publish(estimate_key(self.i, ident), self._last_estimate)
-            self.counters["estimates_handed"] += 1
+        handed = self.join.handover(ident, alive)   # (re)appeared: it may be rejoining from our estimate
+        if handed is not None:
+            self.publish(estimate_key(self.i, ident), handed)
         if not alive and ident in self._nbrs and self.r >= 0:
             self._nbrs = [j for j in self._nbrs if j != ident]
             self.counters["neighbours_lost"] += 1
@@ -139,12 +130,8 @@ class SensorRole(Role):
 
     def _on_peer_estimate(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Estimate)
-        if msg.src != self.i and (self._joining or self.k == 0) and msg.x_next.shape == self.est.x.shape:
-            old = self._peer_est.get(msg.src)
-            if old is None or msg.k >= old.k:   # (a copy held since an earlier router restart may come late)
-                self._peer_est[msg.src] = msg
-            if self._join_pending:
-                self._try_begin()
+        if self.join.offer(msg, self.k, self.est.x.shape):
+            self._try_begin()
 
     # ------------------------------------------------------------------ faults and controls, typed by wire.py
     def _on_world_event(self, key: str, msg: Message) -> None:
@@ -200,31 +187,14 @@ class SensorRole(Role):
         while self.r < 0 and not self.finished and self.k in self._ticks and self.k in self._truth:
             if self.catch_up:
                 self._skip_stale()
-            if self._awaiting_peers():
-                return
+            tick = self._ticks[self.k]
+            if self.join.awaiting(tick, self._live_neighbours(tick), self.k):
+                return      # rejoining: the neighbours' estimates first (bounded by on_deadline)
             self._begin()
-
-    def _awaiting_peers(self) -> bool:
-        """Rejoining and listed alive: wait for the last estimates of this tick's neighbours (of anyone,
-        if it has none) before the first tick — bounded by the deadline (:meth:`on_deadline`). In lockstep
-        they all come (every live sensor answers the token), so the restart is as deterministic as the rest."""
-        tick = self._ticks[self.k]
-        if not self._joining or self._join_forced or not tick.alive[self.i]:
-            self._join_pending = False
-            return False
-        nbrs = self._live_neighbours(tick)
-        fresh = self._fresh_peer_estimates()
-        self._join_pending = not (all(j in fresh for j in nbrs) if nbrs else fresh)
-        return self._join_pending
 
     def _live_neighbours(self, tick: Tick) -> list[int]:
         """The sensors we hear this tick that the world lists alive and we have not seen vanish since."""
         return [j for j in tick.links[self.i] if tick.alive[j] and j not in self._dead]
-
-    def _fresh_peer_estimates(self) -> dict[int, Estimate]:
-        """The peers' estimates of the last few ticks (what they handed us when we reappeared; in lockstep
-        exactly tick k − 1's), not older copies — those the bus held for us since an earlier router restart."""
-        return {j: e for j, e in self._peer_est.items() if e.k >= self.k - JOIN_FRESH_TICKS}
 
     def _skip_stale(self) -> None:
         """Realtime: ticks the world has already moved past are coasted through (predicted only, nothing
@@ -257,8 +227,8 @@ class SensorRole(Role):
         # range-based link dropping at the transport: only the sensors that hear us get our payloads
         self._out = [xchg_key(self.i, j) for j, heard in enumerate(tick.links) if j != self.i and self.i in heard]
         self._out.append(f"agent/{self.i}/xchg")
-        if self._joining:
-            self._reinitialise()
+        if self.join.joining:
+            self.join.start_from(self.est, self._nbrs, self.k)
             log.info("agent/%d: back in the flock at tick %d", self.i, self.k)
         self._prior = self.est.x.copy()
         self.est.start(TickContext(k=tick.k, t=tick.t, n=tick.n, neighbours=tuple(self._nbrs), b=b, T=self.T,
@@ -275,19 +245,6 @@ class SensorRole(Role):
         self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy(),
                                                   v=None if v is None else np.array(v, float)))
         return y
-
-    def _reinitialise(self) -> None:
-        """Rejoining: restart the filter from the neighbours' (else anyone's) last estimates."""
-        peers = self._fresh_peer_estimates()
-        if not peers and self._peer_est:     # (none fresh after the deadline: the newest there are)
-            newest = max(e.k for e in self._peer_est.values())
-            peers = {j: e for j, e in self._peer_est.items() if e.k == newest}
-        src = [j for j in self._nbrs if j in peers] or sorted(peers)
-        if src:
-            self.est.reinitialise({j: peers[j].x_next for j in src},
-                                  {j: peers[j].P for j in src if peers[j].P is not None})
-            self.counters["reinitialised_from"] = len(src)
-        self._joining = self.rejoin = self._join_forced = False
 
     def _open_round(self) -> None:
         if self.r >= self.est.rounds:
@@ -311,10 +268,7 @@ class SensorRole(Role):
         self._open_round()
 
     def on_deadline(self) -> None:
-        if self._join_pending:
-            log.info("agent/%d: rejoining with the estimates of %s only", self.i, sorted(self._peer_est))
-            self._join_forced, self._join_pending = True, False
-            self.counters["join_deadline"] += 1
+        if self.join.give_up_waiting():
             self._try_begin()
         elif self.r >= 0:
             self.counters["deadline_rounds"] += 1
@@ -326,10 +280,9 @@ class SensorRole(Role):
         eps = getattr(self.est, "last_channel_noise", None) or {}
         aux = {f"eps_{j}": np.asarray(e, float) for j, e in sorted(eps.items())}
         aux.update(self.est.report())
-        self._last_estimate = Estimate(src=self.i, k=self.k, x=self._prior, x_next=x_next.copy(),
-                                       P=None if P is None else np.array(P, float), name=type(self.est).__name__,
-                                       aux=aux)
-        self.publish(f"agent/{self.i}/estimate", self._last_estimate)
+        self.join.last = Estimate(src=self.i, k=self.k, x=self._prior, x_next=x_next.copy(),
+                                  P=None if P is None else np.array(P, float), name=type(self.est).__name__, aux=aux)
+        self.publish(f"agent/{self.i}/estimate", self.join.last)
         if self.controller is not None:
             d, tick = self.pos_dims, self._ticks[self.k]
             nbr_pos = np.array([tick.positions[j] for j in self._nbrs]).reshape(-1, self.q.size)
