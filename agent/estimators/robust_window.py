@@ -13,10 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .riccati import huber_curvature, huber_psi, information_update
+from .son_fold import axis_whiteners, fold_kernel
 from .relative_measurement import RelativeMeasurement, whitener
 
 __all__ = ["HUBER_C", "MAD_TO_SIGMA", "ArrivalCost", "RobustScale", "fold_node"]
+
+_NO_GPS = np.zeros(2)   # (the reference agent 0 has no GPS row)
 
 HUBER_C = 1.345          #: Huber's constant: 95 % asymptotic efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826    #: 1/Φ⁻¹(3/4): the MAD of a Gaussian times this is its σ
@@ -83,13 +85,7 @@ class ArrivalCost:
         """((2, 2, 2), (2, 2)): per axis a, L_a⁻¹ on [p_a, v_a] and L_a⁻¹x̄_a (requires ``decoupled``;
         computed once: a window is solved twice when it holds a gross outlier)."""
         if "_per_axis" not in self.__dict__:
-            aW = np.empty((2, 2, 2))
-            az = np.empty((2, 2))
-            for a in range(2):
-                ix = [a, 2 + a]
-                aW[a] = whitener(self.P[np.ix_(ix, ix)])
-                az[a] = aW[a] @ self.xbar[ix]
-            self.__dict__["_per_axis"] = (aW, az)   # a cache beside the frozen fields
+            self.__dict__["_per_axis"] = axis_whiteners(self.P, self.xbar)   # a cache beside the frozen fields
         return self.__dict__["_per_axis"]
 
 
@@ -101,33 +97,7 @@ def fold_node(prior: ArrivalCost, rec: RelativeMeasurement, Wr: np.ndarray, Wg: 
     threshold ``delta``; rows beyond ``gross`` leave no trace. Returns (mean (4,), covariance (4, 4)) of
     [p, v], and the relative row's normalised residual ν̃ (2,) for the scale estimate."""
     has_u = rec.agent != 0
-    nv = 6 if has_u else 4
-    Lam = np.zeros((nv, nv))
-    y0 = np.zeros(nv)
-    o = nv - 4                            # offset of [p, v] in y
-    Lam[o:, o:] = np.linalg.inv(prior.P)
-    y0[o:] = prior.xbar
-    G = np.zeros((4 if has_u else 2, nv))
-    zz = np.empty(G.shape[0])
-    G[0:2, o:o + 2] = Wr                  # relative row (4): Wr (p − u) = Wr z
-    zz[0:2] = Wr @ rec.z
-    if has_u:
-        G[0:2, 0:2] = -Wr
-        G[2:4, 0:2] = Wg                  # GPS row (3): Wg u = Wg gps
-        zz[2:4] = Wg @ rec.gps
-        Lam[0:2, 0:2] = 1e-12 * np.eye(2)  # u has no prior (keeps Λ⁺ regular if both rows are rejected)
-        y0[0:2] = u_hat
-    y_hat = np.concatenate([u_hat, s_hat]) if has_u else np.array(s_hat, float)
-    r = zz - G @ y_hat
-    theta = huber_curvature(r, delta)
-    force = huber_psi(r, delta) * (1.0 - theta)
-    force[np.abs(r) > gross] = 0.0        # gross outliers leave no trace
-    yp, Lp = information_update(y0, Lam, G, zz, theta, force)
-    Sp = np.linalg.inv(Lp)
-    # the relative row's residual at the posterior, normalised by its variance under the model
-    g = G[0:2]
-    h = np.einsum("ij,jk,ik->i", g, Sp, g)
-    rf = zz[0:2] - g @ yp + h * force[0:2]   # a rejected row: its residual without its own pull
-    var = np.where(theta[0:2] > 0, 1.0 - h, 1.0 + h)
-    nu = rf / np.sqrt(np.maximum(var, 1e-6))
-    return yp[o:], 0.5 * (Sp[o:, o:] + Sp[o:, o:].T), nu
+    return fold_kernel(prior.P, prior.xbar, np.asarray(Wr, float), np.asarray(Wg, float), rec.z,
+                       rec.gps if has_u else _NO_GPS, has_u, np.asarray(s_hat, float),
+                       np.asarray(u_hat, float) if has_u else _NO_GPS,
+                       float(delta), float(gross))
