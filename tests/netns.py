@@ -112,6 +112,18 @@ class Network:
         self.close()
 
 
+def port_counters(switch: str, ports: list[str]) -> dict[str, dict[str, int]]:
+    """{port: {rx_bytes, rx_packets, tx_bytes, tx_packets}} of the switch namespace's ports."""
+    out = {}
+    for port in ports:
+        base = Path(f"/sys/class/net/{port}/statistics")
+        r = subprocess.run(["ip", "netns", "exec", switch, "cat", *(str(base / f) for f in
+                            ("rx_bytes", "rx_packets", "tx_bytes", "tx_packets"))], capture_output=True, text=True)
+        vals = [int(v) for v in r.stdout.split()] if r.returncode == 0 else [0, 0, 0, 0]
+        out[port] = dict(zip(("rx_bytes", "rx_packets", "tx_bytes", "tx_packets"), vals))
+    return out
+
+
 # ============================================================================ inside the first host
 
 class CutAndWatch:
@@ -127,6 +139,7 @@ class CutAndWatch:
         self.cut_t: float | None = None
         self.heal_t: float | None = None
         self.cuts = 0
+        self.samples_taken = 0
 
     def _note(self, what: str, **kw) -> None:
         self.timeline.append({"t": time.time(), "event": what, **kw})
@@ -139,6 +152,7 @@ class CutAndWatch:
             self.bus.subscribe("world/tick", self._on_tick)
             self.bus.watch_members(lambda name, alive: self._note("member", name=name, alive=alive))
         self.bus.poll(0)
+        self._sample()
         cut = self.spec.get("cut")
         if not cut:
             return
@@ -153,6 +167,15 @@ class CutAndWatch:
             _ip("-n", cut["switch"], "link", "set", cut["port"], "up")
             self.heal_t = time.time()
             self._note("heal", k=self.seen_k, port=cut["port"])
+
+    def _sample(self) -> None:
+        """At each tick of ``spec["sample"]["at_ticks"]`` (once seen): the switch ports' counters — rx of
+        port p<i> is what host i sent, tx what it received — into the timeline."""
+        smp = self.spec.get("sample")
+        if not smp or self.samples_taken >= len(smp["at_ticks"]) or self.seen_k < smp["at_ticks"][self.samples_taken]:
+            return
+        self.samples_taken += 1
+        self._note("counters", k=self.seen_k, ports=port_counters(smp["switch"], smp["ports"]))
 
     def _on_tick(self, key: str, msg) -> None:
         if msg.k > self.seen_k:

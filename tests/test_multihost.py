@@ -44,7 +44,11 @@ def net():
         assert not any(ns in netns._ip("netns", "list").stdout for ns in [n.switch, *n.hosts])
 
 
-def mesh_run(net, tmp_path: Path, sets: list[str], cut: dict | None = None, timeout_s: float = 150) -> dict:
+def mesh_run(net, tmp_path: Path, sets: list[str], cut: dict | None = None, timeout_s: float = 150,
+             sample_at: list[int] | None = None) -> dict:
+    """Run gu_hu_normal across the three hosts (``sets`` over the scenario); ``cut``: pull a cable
+    (tests/netns.py CutAndWatch); ``sample_at``: ticks at which the switch ports' byte counters are read
+    into the timeline (bench/bench_mesh_traffic.py)."""
     cfgs = mesh_configs(list(zip(HOSTS, net.addrs)), tmp_path / "cfg")
     spec = {"out": str(tmp_path / "run"), "scenario": str(SCEN / "gu_hu_normal.toml"), "set": sets,
             "hosts": [{"name": h, "wrap": net.wrap(i) if i else [], "router": str(cfgs[h]) if i else None}
@@ -52,6 +56,8 @@ def mesh_run(net, tmp_path: Path, sets: list[str], cut: dict | None = None, time
             "where": WHERE, "hub_config": str(cfgs["a"]), "timeout_s": timeout_s}
     if cut:
         spec["cut"] = {"switch": net.switch, **cut}
+    if sample_at:
+        spec["sample"] = {"switch": net.switch, "ports": [f"p{i}" for i in range(len(HOSTS))], "at_ticks": sample_at}
     (tmp_path / "spec.json").write_text(json.dumps(spec))
     # the launcher runs on host a: its embedded router is host a's router
     r = net.run(0, sys.executable, str(ROOT / "tests" / "netns.py"), "mesh-run", str(tmp_path / "spec.json"),

@@ -1,0 +1,173 @@
+"""What crosses each host link of a 3-host mesh per tick: measured on the switch, predicted from the recording.
+
+    python bench/bench_mesh_traffic.py [--ticks 300] [--out bench/results/mesh_traffic.json]
+
+The multi-host test's set-up (tests/netns.py, tests/test_multihost.py): three "hosts" (network namespaces on
+a switch), one Zenoh router each meshed by broker_cfg/mesh/, gu_hu_normal's 10 sensors split a: 0–3 (with
+the world, the target, the recorder and the launcher), b: 4–6, c: 7–9, in lockstep. Between two ticks of
+the run (``--from``, ``--to``), the switch's port counters give what each host sent (port rx) and received
+(port tx), in bytes and Ethernet frames — everything: Zenoh framing, TCP/IP headers, keep-alives, liveliness.
+
+The prediction reads the run's recording: every message of those ticks, its msgpack size (``wire.encode``),
+its publisher's host, and the hosts with a subscriber for its key (flocktrack/keys.py READS: the recorder,
+world, target and launcher on a; every sensor reads world/tick, world/end, world/event, target/truth and
+control/**), one copy per remote router (Zenoh routes a put once to each router with a matching
+subscription). Exchange payloads are addressed (issue 16): sensor i sends one copy per sensor j that hears
+it by tick k's link table, on ``agent/i/to/j/xchg`` — a copy crosses only when j is on another host — and
+one observer copy ``agent/i/xchg`` to the recorder's host. ``broadcast`` is what the same run would send
+if every sensor still subscribed to ``agent/*/xchg`` (before addressing): one copy to every other host.
+
+Writes per directed host link and per host: predicted messages and payload bytes per tick (addressed and
+broadcast), measured bytes and frames per tick, and the measured / predicted byte ratio (the wire's
+overhead over the msgpack payloads). docs/scaling.md extrapolates from these numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+import netns  # noqa: E402 - from tests/, after the sys.path lines above
+from test_multihost import HOSTS, WHERE, mesh_run  # noqa: E402 - same
+
+from agent import wire  # noqa: E402 - after the sys.path lines above
+from flocktrack.record import read_recording  # noqa: E402 - same
+
+#: what a sensor subscribes to besides its own inboxes (flocktrack/keys.py READS["agent"])
+SENSOR_READS = ("world/tick", "world/event", "world/end", "target/truth")
+HUB = HOSTS[0]          # the world, the target, the recorder and the launcher run on host a
+
+
+def host_of(topic: str) -> str:
+    """The host of a recorded message's publisher."""
+    parts = topic.split("/")
+    return WHERE[f"agent/{parts[1]}"] if parts[0] == "agent" else HUB
+
+
+def subscriber_hosts(topic: str) -> set[str]:
+    """Hosts with a subscriber for an observed (not addressed) key: the hub always (the recorder reads
+    everything), every sensor's host for what sensors read."""
+    hosts = {HUB}
+    if topic in SENSOR_READS or topic.startswith("control/"):
+        hosts |= set(WHERE.values())
+    return hosts
+
+
+def predict(recording: Path, k0: int, k1: int) -> dict:
+    """Messages and msgpack bytes per directed host link over ticks [k0, k1): addressed and broadcast."""
+    rec = read_recording(recording)
+    ticks = {m.k: m for topic, m, _ in rec.messages if topic == "world/tick"}
+    links: dict[str, dict[str, dict[str, float]]] = {"addressed": defaultdict(lambda: defaultdict(float)),
+                                                     "broadcast": defaultdict(lambda: defaultdict(float))}
+    sizes: dict[str, list[int]] = defaultdict(list)
+
+    def add(kind: str, src: str, dst: str, size: int, n: int = 1) -> None:
+        if src != dst:
+            links[kind][f"{src}->{dst}"]["messages"] += n
+            links[kind][f"{src}->{dst}"]["bytes"] += n * size
+
+    for topic, msg, _ in rec.messages:
+        if not k0 <= msg.k < k1:
+            continue
+        size = len(wire.encode(msg))
+        kind = topic.split("/")[-1]
+        sizes[kind].append(size)
+        src = host_of(topic)
+        for dst in subscriber_hosts(topic):
+            add("addressed", src, dst, size)
+            if kind != "xchg":
+                add("broadcast", src, dst, size)
+        if kind == "xchg":
+            tick = ticks[msg.k]
+            hearers = [j for j in range(tick.n) if j != msg.src and msg.src in tick.links[j]]
+            for j in hearers:                      # one addressed copy per sensor that hears the sender
+                add("addressed", src, WHERE[f"agent/{j}"], size)
+            for dst in HOSTS:                      # before addressing: to every host (sensors or recorder)
+                add("broadcast", src, dst, size)
+    n = k1 - k0
+    out = {kind: {lk: {"messages_per_tick": v["messages"] / n, "bytes_per_tick": v["bytes"] / n}
+                  for lk, v in sorted(d.items())} for kind, d in links.items()}
+    out["message_bytes"] = {k: {"median": sorted(v)[len(v) // 2], "max": max(v)} for k, v in sorted(sizes.items())}
+    return out
+
+
+def measured(timeline: list[dict]) -> tuple[int, int, dict]:
+    """(k0, k1, per host bytes/frames sent and received per tick) between the two counter samples."""
+    c0, c1 = [e for e in timeline if e["event"] == "counters"][:2]
+    n = c1["k"] - c0["k"]
+    per_host = {}
+    for i, h in enumerate(HOSTS):
+        a, b = c0["ports"][f"p{i}"], c1["ports"][f"p{i}"]
+        per_host[h] = {"sent_bytes_per_tick": (b["rx_bytes"] - a["rx_bytes"]) / n,
+                       "sent_frames_per_tick": (b["rx_packets"] - a["rx_packets"]) / n,
+                       "received_bytes_per_tick": (b["tx_bytes"] - a["tx_bytes"]) / n,
+                       "received_frames_per_tick": (b["tx_packets"] - a["tx_packets"]) / n}
+    return c0["k"], c1["k"], per_host
+
+
+def per_host(pred: dict[str, dict]) -> dict[str, dict[str, float]]:
+    out = {h: {"sent_bytes_per_tick": 0.0, "received_bytes_per_tick": 0.0, "sent_messages_per_tick": 0.0,
+               "received_messages_per_tick": 0.0} for h in HOSTS}
+    for lk, v in pred.items():
+        src, dst = lk.split("->")
+        out[src]["sent_bytes_per_tick"] += v["bytes_per_tick"]
+        out[src]["sent_messages_per_tick"] += v["messages_per_tick"]
+        out[dst]["received_bytes_per_tick"] += v["bytes_per_tick"]
+        out[dst]["received_messages_per_tick"] += v["messages_per_tick"]
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--ticks", type=int, default=300)
+    ap.add_argument("--from", dest="k0", type=int, default=50, help="first tick counted (after start-up)")
+    ap.add_argument("--to", dest="k1", type=int, default=250, help="tick the count ends at")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "mesh_traffic.json")
+    a = ap.parse_args(argv)
+    why = netns.available()
+    if why:
+        sys.exit(f"bench_mesh_traffic: {why}")
+    print(f"[mesh] gu_hu_normal on 3 hosts, {a.ticks} lockstep ticks; counting ticks {a.k0}–{a.k1}", flush=True)
+    t0 = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="meshtraffic_") as d, netns.Network(len(HOSTS)) as net:
+        info = mesh_run(net, Path(d), [f"run.ticks={a.ticks}", 'run.mode="lockstep"'], sample_at=[a.k0, a.k1],
+                        timeout_s=600)
+        timeline = json.loads((Path(d) / "run" / "timeline.json").read_text())
+        k0, k1, meas = measured(timeline)
+        pred = predict(Path(d) / "run" / "recording.mcap", k0, k1)
+    addressed, broadcast = per_host(pred["addressed"]), per_host(pred["broadcast"])
+    hosts = {h: {"measured": meas[h], "predicted_addressed": addressed[h], "predicted_broadcast": broadcast[h],
+                 "measured_over_predicted_bytes": {
+                     d: round(meas[h][f"{d}_bytes_per_tick"] / max(addressed[h][f"{d}_bytes_per_tick"], 1e-9), 2)
+                     for d in ("sent", "received")}}
+             for h in HOSTS}
+    res = {"date": time.strftime("%Y-%m-%d"), "scenario": "gu_hu_normal", "n_sensors": len(WHERE),
+           "placement": {h: [n for n, w in WHERE.items() if w == h] + (["world/0", "target/0", "recorder/0",
+                                                                         "launcher/0"] if h == HUB else [])
+                         for h in HOSTS},
+           "ticks_counted": [k0, k1], "rc": info.get("rc"), "wall_s": round(time.monotonic() - t0, 1),
+           "links_addressed": pred["addressed"], "links_broadcast": pred["broadcast"],
+           "message_bytes": pred["message_bytes"], "hosts": hosts}
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps(res, indent=1))
+    for h, v in hosts.items():
+        m, p, b = v["measured"], v["predicted_addressed"], v["predicted_broadcast"]
+        print(f"[mesh] host {h}: sent {m['sent_bytes_per_tick']:.0f} B/tick in {m['sent_frames_per_tick']:.1f} frames "
+              f"(payloads {p['sent_bytes_per_tick']:.0f} B in {p['sent_messages_per_tick']:.1f} messages; broadcast "
+              f"would be {b['sent_bytes_per_tick']:.0f} B); received {m['received_bytes_per_tick']:.0f} B/tick "
+              f"(payloads {p['received_bytes_per_tick']:.0f} B)", flush=True)
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
