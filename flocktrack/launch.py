@@ -22,7 +22,6 @@ SIGKILLed. No orphan processes.
 
 from __future__ import annotations
 
-import ctypes
 import json
 import os
 import signal
@@ -33,6 +32,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from .forkserver import ForkedProcess, die_with_parent, forkable, start_server
 
 ROOT = Path(__file__).resolve().parents[1]
 LOCAL_ROUTER_CFG = ROOT / "broker_cfg" / "local.json5"
@@ -52,14 +53,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def die_with_parent() -> None:
-    """Ask the kernel to SIGKILL this process when its parent dies (run in the child between fork and exec)."""
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
 
 
 def open_router(port: int, config_file: Path = LOCAL_ROUTER_CFG, host: str = "127.0.0.1", proto: str = "tcp"):
@@ -241,9 +234,12 @@ class Launcher:
         env = dict(os.environ, PYTHONUNBUFFERED="1", RUST_LOG=os.environ.get("RUST_LOG", "error"))
         env["FLOCKTRACK_STATS_DIR"] = str(self.run_dir / "stats")
         env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-        c.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                  env=env, preexec_fn=die_with_parent, cwd=str(ROOT))
-        self._event("spawn", c.name, pid=c.proc.pid, rejoin=rejoin)
+        if forkable(argv):   # python -m …: forked from the pre-imported template (flocktrack/forkserver.py)
+            c.proc = ForkedProcess(argv, env, str(ROOT))
+        else:
+            c.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                      env=env, preexec_fn=die_with_parent, cwd=str(ROOT))
+        self._event("spawn", c.name, pid=c.proc.pid, rejoin=rejoin, forked=isinstance(c.proc, ForkedProcess))
         threading.Thread(target=self._forward, args=(c, c.proc), daemon=True).start()
 
     def _forward(self, c: Child, proc: subprocess.Popen) -> None:
@@ -266,6 +262,9 @@ class Launcher:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
+        kids = self.plan()
+        if any(forkable(c.argv) for c in kids):
+            start_server()        # the template's imports, once, before the router and the children
         self.router = self._open_router()
         from agent.bus import ZenohBus
 
@@ -277,7 +276,7 @@ class Launcher:
         self.ctl_bus.subscribe("world/tick", self._on_tick)
         self.ctl_bus.declare_token("launcher/0")
         self._register()
-        for c in self.plan():
+        for c in kids:
             self.children[c.name] = c
             self._spawn(c)
 

@@ -1,11 +1,13 @@
 """The live status line of ``flocktrack run`` over Zenoh: what the run is doing, in one line.
 
+    starting · 9/16 processes up
     tick 412/1000 · 24.8 ticks/s (target 25.0) · RMSE 0.083 · deadlines 0 · sensors 12/12
 
 It listens to ``world/tick`` (k, who is alive), ``target/truth`` and ``agent/*/estimate`` through its own
 Zenoh client — the RMSE is the one of metrics.csv (position error, RMS over the sensors reporting the
 tick) for the newest tick that has both — and takes the number of missed round deadlines from the
-launcher, which sees every process's log. On a terminal the line is redrawn in place (4 Hz); otherwise
+launcher, which sees every process's log. Until the first tick it counts the run's processes whose
+liveliness token is up (the flock coming up). On a terminal the line is redrawn in place (4 Hz); otherwise
 (a log file, CI) one plain line every 10 % of the run.
 """
 
@@ -21,7 +23,7 @@ import numpy as np
 
 class RunStatus:
     def __init__(self, run: str, endpoint: str, ticks: int, n: int, pos_dims: int, target_rate: float | None,
-                 config_file: str | None = None, stream=None, deadlines=lambda: 0):
+                 config_file: str | None = None, stream=None, deadlines=lambda: 0, processes: int | None = None):
         from agent.bus import ZenohBus
 
         self.ticks, self.n, self.d, self.target_rate = int(ticks), int(n), int(pos_dims), target_rate
@@ -31,6 +33,8 @@ class RunStatus:
         self.k = -1
         self.done = False                 # world/end seen: every tick is through
         self.alive = 0
+        self.processes = processes        # how many of the run's processes declare a token (start-up progress)
+        self.members: set[str] = set()
         self.rmse: float | None = None
         self._truth: dict[int, np.ndarray] = {}
         self._est: dict[int, dict[int, np.ndarray]] = {}
@@ -43,6 +47,7 @@ class RunStatus:
         self.bus.subscribe("target/truth", self._on_truth)
         self.bus.subscribe("agent/*/estimate", self._on_estimate)
         self.bus.subscribe("world/end", self._on_end)
+        self.bus.watch_members(lambda name, alive: (self.members.add if alive else self.members.discard)(name))
 
     # ------------------------------------------------------------------ messages
     def _on_tick(self, key, msg) -> None:
@@ -82,6 +87,9 @@ class RunStatus:
         return (k1 - k0) / (t1 - t0) if t1 > t0 else None
 
     def line(self) -> str:
+        if self.k < 0 and not self.done and self.processes:
+            up = len([m for m in self.members if not m.startswith(("launcher/", "status/"))])
+            return f"starting · {min(up, self.processes)}/{self.processes} processes up"
         k = self.ticks if self.done else max(self.k, 0)
         parts = [f"tick {k}/{self.ticks}"]
         r = self.rate()
