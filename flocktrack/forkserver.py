@@ -92,8 +92,10 @@ def _child_main(argv: list[str], env: dict[str, str], cwd: str, out: _Fd) -> Non
     os.dup2(null, 0)
     os.dup2(out.fd, 1)
     os.dup2(out.fd, 2)
-    os.close(out.fd)
-    os.close(null)
+    # nothing else of the server's: among its descriptors is the write end of the pipe by which the server
+    # learns that its launcher is gone — held by a child, the server (and with it the child) would outlive
+    # a killed launcher
+    os.closerange(3, os.sysconf("SC_OPEN_MAX"))
     sys.stdout = io.TextIOWrapper(io.FileIO(1, "w", closefd=False), encoding="utf-8", line_buffering=True,
                                   write_through=True)
     sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), encoding="utf-8", errors="backslashreplace",
