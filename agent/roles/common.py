@@ -1,9 +1,12 @@
-"""What every role shares: the bus handle, the run length, and the deadline hook."""
+"""What every role shares: the bus handle, the run length, the deadline hook, and the fault plan's events
+typed by wire.py."""
 
 from __future__ import annotations
 
+from collections import Counter
+
 from ..bus import Bus
-from ..wire import Message, encode
+from ..wire import Control, FaultEvent, Message, WireError, encode, fault_event
 
 
 class Role:
@@ -14,6 +17,7 @@ class Role:
     def __init__(self, ticks: int):
         self.ticks = int(ticks)
         self.bus: Bus | None = None
+        self.counters: Counter = Counter()
 
     def attach(self, bus: Bus) -> None:
         self.bus = bus
@@ -66,3 +70,20 @@ class Role:
 
     def on_timer(self, now: float) -> None:
         """Called periodically by a realtime driver with the wall-clock time (s)."""
+
+    def on_world_event(self, key: str, msg: Message) -> None:
+        """``world/event`` (subscribe it to get fault-plan transitions, topology/faults.py): a ``fault`` is
+        typed by :func:`agent.wire.fault_event` and handed to :meth:`on_fault`; a malformed one is counted
+        (``rejected_events``) and dropped."""
+        assert isinstance(msg, Control)
+        if msg.verb != "fault":
+            return
+        try:
+            ev = fault_event(msg.args)
+        except WireError:
+            self.counters["rejected_events"] += 1
+            return
+        self.on_fault(ev)
+
+    def on_fault(self, ev: FaultEvent) -> None:
+        """A fault starts or heals (:meth:`on_world_event`)."""

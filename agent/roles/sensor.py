@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import Counter
 
 import numpy as np
 
@@ -30,10 +29,11 @@ from ..bus import Bus
 from ..estimators.base import Estimator, TickContext
 from ..link_emulation import LinkEmulator, noise_factor
 from ..models import LinearSensor, integrate_double_integrator
-from ..wire import (Control, Estimate, Meas, Message, State, Tick, Truth, WireError, Xchg, command, estimate_inbox,
-                    estimate_key, fault_event, inbox, xchg_key)
+from ..wire import (Control, Estimate, FaultEvent, Meas, Message, State, Tick, Truth, WireError, Xchg, command,
+                    estimate_inbox, estimate_key, inbox, xchg_key)
 from .common import Role
 from .rejoin import Rejoin
+from .rounds import RoundInbox
 
 log = logging.getLogger(__name__)
 
@@ -54,13 +54,12 @@ class SensorRole(Role):
         self.k, self.r = 0, -1          # tick being (or next to be) processed; exchange round (-1: not in a tick)
         self._ticks: dict[int, Tick] = {}
         self._truth: dict[int, Truth] = {}
-        self._xbuf: dict[tuple[int, int], dict[int, dict]] = {}    # (k, r) → sender → payload
         self._prior: np.ndarray | None = None
         self._nbrs: list[int] = []
         self._out: list[str] = []       # this tick's exchange keys: one per sensor that hears us, + observers'
         self._dead: set[int] = set()
         self._sat_out_last = -2   # the last tick sat out (a log line when a stretch begins)
-        self.counters: Counter = Counter()
+        self.inbox = RoundInbox(self.counters)               # exchange payloads by (tick, round)
         self.join = Rejoin(self.i, rejoin, self.counters)   # a restart's way back, and the handover to others
         self.link = LinkEmulator(self.i, self.seed, self._accept_xchg, time.monotonic, noise_factor(sensor),
                                  self.counters)
@@ -72,7 +71,7 @@ class SensorRole(Role):
         if self.join.restarted:
             bus.subscribe(estimate_inbox(self.i), self._on_peer_estimate)
         bus.subscribe("control/outlier_burst", self._on_outlier_burst)
-        bus.subscribe("world/event", self._on_world_event)
+        bus.subscribe("world/event", self.on_world_event)
 
     @property
     def finished(self) -> bool:
@@ -134,14 +133,8 @@ class SensorRole(Role):
             self._try_begin()
 
     # ------------------------------------------------------------------ faults and controls, typed by wire.py
-    def _on_world_event(self, key: str, msg: Message) -> None:
-        """A fault-plan transition (topology/faults.py), for the link emulator."""
-        assert isinstance(msg, Control)
-        try:
-            if msg.verb == "fault":
-                self.link.apply(fault_event(msg.args))
-        except WireError:
-            self.counters["rejected_events"] += 1
+    def on_fault(self, ev: FaultEvent) -> None:
+        self.link.apply(ev)
 
     def _on_outlier_burst(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Control)
@@ -164,23 +157,11 @@ class SensorRole(Role):
             self._check_round()
 
     def _accept_xchg(self, key: str, msg: Xchg) -> None:
-        """A payload through the link emulator: buffered for its round unless refused."""
-        if not self._refused(msg.src, msg.k, msg.r):
-            self._xbuf.setdefault((msg.k, msg.r), {})[msg.src] = msg.payload
+        """A payload through the link emulator: buffered for its round unless late or not a neighbour's."""
+        if not self.inbox.refused(msg.src, msg.k, msg.r, (self.k, self.r), self._nbrs):
+            self.inbox.put(msg.src, msg.k, msg.r, msg.payload)
             if msg.k == self.k and msg.r == self.r:
                 self._check_round()
-
-    def _refused(self, j: int, k: int, r: int) -> bool:
-        """Is a payload (k, r) from j late (its round is over) or, in the tick under way, not from a
-        neighbour? Counted if so. (A payload of a tick not begun yet is kept: its sender addressed it by
-        that tick's link table.)"""
-        if k < self.k or (k == self.k and 0 <= self.r and r < self.r):
-            self.counters["late_payloads"] += 1
-            return True
-        if k == self.k and self.r >= 0 and j not in self._nbrs:
-            self.counters["non_neighbour_payloads"] += 1
-            return True
-        return False
 
     # ------------------------------------------------------------------ the tick: measure → rounds → finish
     def _try_begin(self) -> None:
@@ -255,15 +236,11 @@ class SensorRole(Role):
         self._check_round()
 
     def _check_round(self) -> None:
-        got, held = self._xbuf.get((self.k, self.r), {}), self.link.withheld(self.k, self.r)
-        if all(j in got or j in held for j in self._nbrs):
+        if self.inbox.complete(self.k, self.r, self._nbrs, self.link.withheld(self.k, self.r)):
             self._close_round()
 
     def _close_round(self) -> None:
-        got = self._xbuf.pop((self.k, self.r), {})
-        heard = {j: got[j] for j in self._nbrs if j in got}
-        self.counters["dropped_links"] += len(self._nbrs) - len(heard)
-        self.est.absorb(self.r, heard)
+        self.est.absorb(self.r, self.inbox.take(self.k, self.r, self._nbrs))
         self.r += 1
         self._open_round()
 
@@ -309,4 +286,4 @@ class SensorRole(Role):
         """Drop what belongs to ticks before ``self.k``: tick and truth messages, buffered payloads."""
         self._ticks = {kk: m for kk, m in self._ticks.items() if kk >= self.k}
         self._truth = {kk: m for kk, m in self._truth.items() if kk >= self.k}
-        self._xbuf = {kr: got for kr, got in self._xbuf.items() if kr[0] >= self.k}
+        self.inbox.forget_before(self.k)

@@ -14,7 +14,7 @@ from collections import Counter
 import numpy as np
 
 from ..bus import Bus
-from ..wire import Control, Estimate, Message, State, Tick, Truth, WireError, fault_event
+from ..wire import Estimate, FaultEvent, Message, State, Tick, Truth
 from .common import Role
 
 
@@ -46,7 +46,7 @@ class TargetRole(Role):
 
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
-        bus.subscribe("world/event", self._on_world_event)
+        bus.subscribe("world/event", self.on_world_event)
         if self.intelligent:
             bus.subscribe("agent/*/estimate", self._on_estimate)
 
@@ -124,16 +124,8 @@ class TargetRole(Role):
         self._est.clear()
         self._moved()
 
-    def _on_world_event(self, key: str, msg: Message) -> None:
-        assert isinstance(msg, Control)
-        if msg.verb != "fault":
-            return
-        try:
-            ev = fault_event(msg.args)          # typed and bounded by wire.py (|accel| ≤ MAX_EVADE_ACCEL)
-        except WireError:
-            self.counters["rejected_events"] += 1
-            return
-        if ev.kind == "evade":
+    def on_fault(self, ev: FaultEvent) -> None:
+        if ev.kind == "evade":          # (|accel| bounded by wire.py)
             if ev.phase == "start":
                 self._evade[ev.id] = ev.accel
             else:
