@@ -8,15 +8,27 @@ Deadlines and restart policies are declared (scenario / launcher), not coded per
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 import time
 from collections.abc import Iterable
+from pathlib import Path
 
 from .roles.common import Role
 
 log = logging.getLogger(__name__)
-_STARTED = time.monotonic()  # (imported at process start, before the heavy imports of the roles)
+
+
+def process_age_s() -> float:
+    """Seconds since this process was created — its fork, from /proc (a process forked from the launcher's
+    pre-imported template, flocktrack/forkserver.py, imported this module long before it existed)."""
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK")     # field 22: starttime, in clock ticks
+    except (OSError, ValueError, IndexError):
+        return float("nan")
 
 
 def parse_member(name: str) -> tuple[str, int] | None:
@@ -86,7 +98,7 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
     role.attach(bus)
     bus.watch_members(on_member)
     bus.declare_token(name)
-    log.info("%s: member of the run (%.2f s after the process started)", name, time.monotonic() - _STARTED)
+    log.info("%s: member of the run (%.2f s after the process started)", name, process_age_s())
     expect = set(expect)
     t_start = time.monotonic()
     while expect - members:
