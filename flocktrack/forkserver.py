@@ -22,6 +22,7 @@ not ``python -m`` of this interpreter (a mesh host's, wrapped in ``ip netns exec
 from __future__ import annotations
 
 import ctypes
+import gc
 import io
 import multiprocessing
 import os
@@ -100,6 +101,10 @@ def _child_main(argv: list[str], env: dict[str, str], cwd: str, out: _Fd) -> Non
                                   write_through=True)
     sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), encoding="utf-8", errors="backslashreplace",
                                   line_buffering=True, write_through=True)
+    # the template's objects are never garbage: keep the cyclic collector off them — it would scan them at
+    # every full collection and, writing their headers, copy every page of the template into each child
+    # (all children at once, as their allocations run alike: a burst of missed round deadlines)
+    gc.freeze()
     os.environ.clear()
     os.environ.update(env)
     os.chdir(cwd)
