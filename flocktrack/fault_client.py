@@ -30,9 +30,6 @@ APPLIED, REFUSED, NO_ANSWER = 0, 1, 2
 UNANSWERED = frozenset({"outlier_burst"})
 LAUNCHER_VERBS = frozenset({"kill", "restart"})
 
-#: the typed command :func:`agent.wire.command` returns for each verb (wire.py dispatches by verb in code and
-#: keeps no such table; tests/test_fault_cli_args.py checks this one against it). A verb's argument names
-#: are its command's fields but ``verb``.
 #: arguments any verb may carry: the request id its answer echoes (agent/wire.py ``request_id``)
 GENERIC_ARGS = ("req",)
 

@@ -109,9 +109,8 @@ def _child_main(argv: list[str], env: dict[str, str], cwd: str, out: _Fd) -> Non
     os.environ.update(env)
     os.chdir(cwd)
     die_with_parent()
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     code = 0
-    sys.argv = [argv[0], *argv[1:]]
+    sys.argv = list(argv)
     try:
         runpy.run_module(argv[0], run_name="__main__", alter_sys=True)
     except SystemExit as exc:
@@ -169,6 +168,3 @@ class ForkedProcess:
 
     def kill(self) -> None:
         self.send_signal(signal.SIGKILL)
-
-    def terminate(self) -> None:
-        self.send_signal(signal.SIGTERM)

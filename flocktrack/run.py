@@ -210,7 +210,7 @@ def _status_line(sc: Scenario, run: str, launcher: Launcher, keys):
         st = RunStatus(run, launcher.endpoint, sc.run.ticks, sc.sensors.n, sc.pos_dims, rate,
                        config_file=str(keys.client("recorder")) if keys is not None else None,
                        deadlines=lambda: launcher.deadlines,
-                       processes=sum(1 for c in launcher.children.values() if c.name.split("/")[0] != "router"))
+                       processes=sum(1 for c in launcher.children.values() if not c.service))
     except Exception as exc:  # a status line is a convenience, never a reason to fail a run
         print(f"warning: no status line ({exc})", file=sys.stderr)
         return None

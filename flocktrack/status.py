@@ -88,7 +88,7 @@ class RunStatus:
 
     def line(self) -> str:
         if self.k < 0 and not self.done and self.processes:
-            up = len([m for m in self.members if not m.startswith(("launcher/", "status/"))])
+            up = len([m for m in self.members if not m.startswith("launcher/")])
             return f"starting · {min(up, self.processes)}/{self.processes} processes up"
         k = self.ticks if self.done else max(self.k, 0)
         parts = [f"tick {k}/{self.ticks}"]

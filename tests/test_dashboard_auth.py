@@ -7,6 +7,7 @@ tests/test_dashboard_browser.py; the launcher's token file and printed link are 
 import os
 import stat
 import time
+from contextlib import contextmanager
 
 import msgspec
 import pytest
@@ -39,6 +40,24 @@ def _press(ws, uuid: str, value=True) -> None:
     ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": value}}))
 
 
+@contextmanager
+def _operator_ui(n: int):
+    """A live DashboardUI with operator token "the-token", the controls it sends, and a list of websockets
+    that are closed (and the UI stopped) on the way out."""
+    from dashboards.live import DashboardUI
+
+    sent: list = []
+    ui = DashboardUI(RunInfo(n=n, link_range=12.0, name="auth"), port=free_port(), live=True,
+                     send_control=lambda v, a: sent.append((v, a)), operator_token="the-token")
+    socks: list = []
+    try:
+        yield ui, sent, socks
+    finally:
+        for ws in socks:
+            ws.close()
+        ui.stop()
+
+
 def _wait(cond, timeout_s: float = 20.0) -> bool:
     end = time.monotonic() + timeout_s
     while not cond() and time.monotonic() < end:
@@ -47,13 +66,7 @@ def _wait(cond, timeout_s: float = 20.0) -> bool:
 
 
 def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_them():
-    from dashboards.live import DashboardUI
-
-    sent: list = []
-    ui = DashboardUI(RunInfo(n=5, link_range=12.0, name="auth"), port=free_port(), live=True,
-                     send_control=lambda v, a: sent.append((v, a)), operator_token="the-token")
-    socks = []
-    try:
+    with _operator_ui(5) as (ui, sent, socks):
         viewer = _connect(ui.port, "/")
         wrong = _connect(ui.port, "/operator/not-the-token")
         socks += [viewer, wrong]
@@ -74,23 +87,13 @@ def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_th
         op.close()
         assert _wait(lambda: ui.operators.panels == {})           # its controls go with its tab
         assert ui.operators.counters == {"viewer_tabs": 1, "wrong_tokens": 1, "operator_tabs": 1}
-    finally:
-        for ws in socks:
-            ws.close()
-        ui.stop()
 
 
 def test_a_viewer_inspecting_another_sensor_does_not_retarget_the_operators_controls():
     """The inspector's "Sensor" dropdown is on the shared GUI (every tab sees the selection); only the
     operator's own choice there, or its own click in the scene, moves its "Sensor id" and "Link a" — a
     viewer's never does, so a viewer cannot make the operator's next Kill hit another sensor."""
-    from dashboards.live import DashboardUI
-
-    sent: list = []
-    ui = DashboardUI(RunInfo(n=6, link_range=12.0, name="auth"), port=free_port(), live=True,
-                     send_control=lambda v, a: sent.append((v, a)), operator_token="the-token")
-    socks = []
-    try:
+    with _operator_ui(6) as (ui, sent, socks):
         viewer = _connect(ui.port, "/")
         op = _connect(ui.port, "/operator/the-token")
         socks += [viewer, op]
@@ -119,10 +122,6 @@ def test_a_viewer_inspecting_another_sensor_does_not_retarget_the_operators_cont
         assert _wait(lambda: ui.g_node.value == "1")
         time.sleep(1.0)
         assert fields() == (5, 5) and sent == []
-    finally:
-        for ws in socks:
-            ws.close()
-        ui.stop()
 
 
 def test_a_replay_or_tokenless_page_has_no_operator():

@@ -25,6 +25,13 @@ def _as_cov(M, name: str) -> np.ndarray:
     return A
 
 
+def _as_vec2(v, name: str) -> np.ndarray:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (2,) or not np.isfinite(a).all():
+        raise ValueError(f"{name} must be a finite 2-vector")
+    return a
+
+
 @dataclass(frozen=True)
 class RelativeMeasurement:
     """One time-stamped relative measurement of the target by an agent (the paper's (4)).
@@ -50,10 +57,7 @@ class RelativeMeasurement:
         object.__setattr__(self, "t", float(self.t))
         if not math.isfinite(self.t):
             raise ValueError("t must be finite")
-        z = np.asarray(self.z, dtype=float).reshape(-1)
-        if z.shape != (2,) or not np.isfinite(z).all():
-            raise ValueError("z must be a finite 2-vector")
-        object.__setattr__(self, "z", z)
+        object.__setattr__(self, "z", _as_vec2(self.z, "z"))
         object.__setattr__(self, "R", _as_cov(self.R, "R"))
         if self.agent < 0:
             raise ValueError("agent ids are ≥ 0 (0 = the reference agent)")
@@ -63,10 +67,7 @@ class RelativeMeasurement:
         else:
             if self.gps is None or self.gps_R is None:
                 raise ValueError("a measurement by agent ≥ 1 needs the agent's GPS position and covariance")
-            g = np.asarray(self.gps, dtype=float).reshape(-1)
-            if g.shape != (2,) or not np.isfinite(g).all():
-                raise ValueError("gps must be a finite 2-vector")
-            object.__setattr__(self, "gps", g)
+            object.__setattr__(self, "gps", _as_vec2(self.gps, "gps"))
             object.__setattr__(self, "gps_R", _as_cov(self.gps_R, "gps_R"))
 
     @property
