@@ -12,19 +12,26 @@ import sys
 
 from .assemble import build_extra, build_sensor, build_target, extra_processes
 from .bus import ZenohBus
-from .runner import StopFlag, drive, idle_poll_s, profiled
+from .runner import StopFlag, WaitBudget, drive, idle_poll_s, profiled
 from .scenario import ScenarioError, load_scenario
 
 
-def role_deadline(sc, mode: str, role: str) -> float:
-    """Per-wait deadline: lockstep waits long (only dead processes miss it); realtime shares T out
-    between the exchange rounds like a radio slot schedule."""
+def role_budget(sc, mode: str, role: str) -> WaitBudget:
+    """How long each wait may last (:class:`agent.runner.WaitBudget`). Lockstep waits long (only dead
+    processes miss it). Realtime shares the period T / speed out like a radio slot schedule of R + 3 slots
+    (R exchange rounds): a sensor's round r is due r + 2 slots after it began the tick (round 0 has two, for
+    the spread of the moments the neighbours begin; a round that closes early leaves its time to the next);
+    an intelligent target waits for the estimates R + 2 slots after its tick; the last slot carries the
+    states to the world before its clock closes the tick. Every wait of the warm-up tick 0 gets two periods."""
     if mode == "lockstep":
-        return sc.run.deadline_s
+        return WaitBudget(sc.run.deadline_s)
     period = sc.run.T / sc.run.speed
+    slot = period / (sc.estimator.rounds + 3)
     if role == "sensor":
-        return period / (sc.estimator.rounds + 2)
-    return period / 2
+        return WaitBudget(slot, schedule=True, head=1, warmup_s=2 * period)
+    if role == "target":
+        return WaitBudget(slot * (sc.estimator.rounds + 2), warmup_s=2 * period)
+    return WaitBudget(period / 2, warmup_s=2 * period)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         role, name = build_target(sc), "target/0"
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)
     try:
-        return profiled(name, lambda: drive(role, bus, name, role_deadline(sc, mode, args.role), stop,
+        return profiled(name, lambda: drive(role, bus, name, role_budget(sc, mode, args.role), stop,
                                             idle_s=idle_poll_s(mode)))
     finally:
         bus.close()

@@ -13,6 +13,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 from .roles.common import Role
@@ -79,13 +80,46 @@ def idle_poll_s(mode: str) -> float:
     return 0.05 if mode == "lockstep" else 0.01
 
 
-def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None = None,
+@dataclass(frozen=True)
+class WaitBudget:
+    """How long a role may wait on one step of its protocol before it goes on with what has arrived —
+    declared per role and mode (agent/__main__.py ``role_budget``), enforced by :func:`drive`.
+
+    A role's wait is identified by ``wait_key = (k, r)``: step k (a tick), sub-step r (an exchange round).
+
+    - ``schedule=False`` (lockstep): every wait gets ``slot_s`` from the moment it began — deadlines only
+      catch dead or stopped processes.
+    - ``schedule=True`` (realtime): the sub-steps of a step share a slot schedule anchored at the step's
+      first wait: wait (k, r) is due ``(r + 1 + head) · slot_s`` after it. Time a fast round leaves unused
+      goes to the next one, and the first round's ``head`` extra slots absorb the spread of the moments
+      the neighbours begin the tick (one descheduled for a few ms on a loaded machine would otherwise
+      miss everybody's round 0).
+    - ``warmup_s``: the budget of every wait of step 0, the run's first tick, in which routes and
+      publishers are still being set up (the realtime world closes tick 0 on its states, not its clock).
+    """
+
+    slot_s: float
+    schedule: bool = False
+    head: float = 0.0
+    warmup_s: float | None = None
+
+    def due(self, key: tuple, began: float, step_began: float) -> float:
+        """When wait ``key`` (begun at ``began``, its step's first wait at ``step_began``) times out."""
+        if self.warmup_s is not None and key[0] == 0:
+            return began + self.warmup_s
+        if not self.schedule:
+            return began + self.slot_s
+        return step_began + (key[1] + 1 + self.head) * self.slot_s
+
+
+def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: StopFlag | None = None,
           expect: Iterable[str] = (), startup_timeout_s: float = 60.0, linger_s: float = 0.5,
           idle_s: float = 0.01) -> int:
-    """Run ``role`` until it finishes. ``expect``: member names that must be alive before
-    :meth:`Role.start` (the world's start barrier). ``idle_s``: see :func:`idle_poll_s`.
-    Returns a process exit code."""
+    """Run ``role`` until it finishes. ``deadline_s``: a :class:`WaitBudget`, or seconds per wait.
+    ``expect``: member names that must be alive before :meth:`Role.start` (the world's start barrier).
+    ``idle_s``: see :func:`idle_poll_s`. Returns a process exit code."""
     stop = stop or StopFlag()
+    budget = deadline_s if isinstance(deadline_s, WaitBudget) else WaitBudget(float(deadline_s))
     members: set[str] = set()
     quick_gil_handoff()
 
@@ -110,7 +144,7 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
             break
     role.start()
     try:
-        _loop(role, bus, name, deadline_s, stop, idle_s)
+        _loop(role, bus, name, budget, stop, idle_s)
     except Exception:
         write_stats(name, bus, role)
         raise
@@ -122,20 +156,26 @@ def drive(role: Role, bus, name: str, deadline_s: float, stop: StopFlag | None =
     return 0
 
 
-def _loop(role: Role, bus, name: str, deadline_s: float, stop: StopFlag, idle_s: float) -> None:
-    last_key, since = None, time.monotonic()
+def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, idle_s: float) -> None:
+    last_key, due = None, float("inf")
+    step_began = time.monotonic()
     while not role.finished and not stop.set:
-        if bus.poll(idle_s) == 0:
+        # wake for the next message, the current wait's deadline, or the idle tick, whichever comes first
+        if bus.poll(max(0.0, min(idle_s, due - time.monotonic()))) == 0:
             role.on_idle()
         now = time.monotonic()
         role.on_timer(now)
         key = role.wait_key
         if key != last_key:
-            last_key, since = key, now
-        elif key is not None and now - since > deadline_s:
+            if key is not None and (last_key is None or key[0] != last_key[0]):
+                step_began = now
+            last_key = key
+            due = float("inf") if key is None else budget.due(key, now, step_began)
+        elif key is not None and now >= due:
             log.info("%s: deadline on %s", name, key)
             role.on_deadline()
-            since = now
+            # the same wait going on (e.g. a rejoin still short of estimates): one budget more from now
+            due = max(budget.due(key, now, step_began), now + budget.slot_s)
 
 
 def write_stats(name: str, bus, role: Role | None = None) -> None:

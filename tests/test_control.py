@@ -51,15 +51,21 @@ def test_a_paused_realtime_world_holds_its_clock_through_deadlines():
     w.attach(LocalBus())
     w.start()
     w.on_timer(0.0)
+    assert w.k == 0                        # tick 0, the warm-up, waits for its states, not the clock
+    w.on_timer(5 * w.period)
+    assert w.k == 0
+    w.on_deadline()                        # (no sensor here: the guard closes it) — the clock starts at
+    w.on_timer(0.0)                        # the next timer: tick 1 closes a period later
     k0 = w.k
+    assert k0 == 1
     assert w.apply_control("pause", {})
-    w.on_timer(0.5 * w.period)             # paused half-way through tick 0
+    w.on_timer(0.5 * w.period)             # paused half-way through tick 1
     for s in range(1, 50):                 # wall time passes, deadlines fire: nothing moves
         w.on_timer(s * 10 * w.period)
         w.on_deadline()
     assert w.k == k0
     assert w.apply_control("resume", {})
-    w.on_timer(490.4 * w.period)        # resumed: tick 0 still has half a period to go
+    w.on_timer(490.4 * w.period)        # resumed: tick 1 still has half a period to go
     assert w.k == k0
     w.on_timer(490.8 * w.period)
     assert w.k == k0

@@ -8,7 +8,9 @@ At tick k the world publishes ``tick`` {k, t, links, weights, b, δ_max, alive, 
 * δ_max of the tick's graph, so every node uses the same consensus rate η.
 
 It then waits for every alive sensor's ``state`` k and the target's ``state`` k (or the deadline),
-and starts tick k+1. It is the only role that knows all positions.
+and starts tick k+1 — in realtime, its clock closes tick k at t0 + (k+1)·T/speed whatever has arrived, except
+tick 0, the warm-up (routes and publishers being set up), which closes on its states. It is the only role
+that knows all positions.
 
 Process faults (crash, pause, router_restart) are executed by the launcher. In lockstep, when a launcher
 is a member of the run (its liveliness token ``launcher/0``), the world publishes such a fault's
@@ -242,15 +244,21 @@ class WorldRole(Role):
         self._release_fault_hold(force=outage)
 
     def on_timer(self, now: float) -> None:
-        """Realtime pacing: tick k closes at t0 + (k+1)·T whatever has arrived (late = lost). In any mode:
+        """Realtime pacing: tick k ≥ 1 closes at t0 + (k+1)·T whatever has arrived (late = lost); tick 0, the
+        warm-up, closes on its states as in lockstep, and t0 is set then. In any mode:
         a tick held for the launcher's acks goes on after ``ack_timeout_s``."""
         if self.hold.check_timeout(now, self._held_graph is not None):
             self.stats["fault_hold_timeouts"] = self.hold.timeouts
             self._release_fault_hold()
         if not self.realtime or self.finished:
             return
+        if self.k == 0:     # the warm-up tick closes on its states (_check)
+            self._check()
+            return
         if self._t0 is None:
-            self._t0 = now
+            # tick 0 was the warm-up, closed on its states like lockstep — every process's routes and
+            # addressed publishers got set up in it; the clock starts now: tick 1 closes a period on
+            self._t0 = now - self.period
         if self.paused:
             if self._pause_started is None:
                 self._pause_started = now
@@ -368,8 +376,8 @@ class WorldRole(Role):
             self._check()
 
     def _check(self) -> None:
-        if self.realtime:
-            return  # realtime: the clock closes the tick (on_timer)
+        if self.realtime and (self.k > 0 or self.paused):
+            return  # realtime: the clock closes the tick (on_timer); tick 0 is the warm-up (_advance)
         if self._open and self._target_state is not None and all(i in self._states for i in self._expected):
             self._advance()
 
