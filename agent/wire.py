@@ -228,24 +228,58 @@ class Tick(Message):
         alive = _list(d.get("alive"), "alive")
         if not (len(links) == len(weights) == len(b) == len(alive) == n):
             raise WireError("bad_shape", "links/weights/b/alive must have n entries")
-        lk = []
-        for i, (li, wi) in enumerate(zip(links, weights)):
-            li = [_int(j, "links[i][j]", 0, n - 1) for j in _list(li, "links[i]")]
-            wi = [_float(w, "weights[i][j]") for w in _list(wi, "weights[i]")]
-            if len(li) != len(wi) or i in li or li != sorted(set(li)):
-                raise WireError("bad_field", f"links[{i}] must be sorted, unique, without self, aligned with weights")
-            lk.append((li, wi))
         pos = _dec_array(d.get("positions"), ndim=(2,))
         if pos.shape[0] != n:
             raise WireError("bad_shape", "positions must have n rows")
-        alive_v = []
-        for a in alive:
-            if not isinstance(a, bool):
-                raise WireError("bad_field", "alive must be booleans")
-            alive_v.append(a)
-        return dict(t=_float(d.get("t"), "t"), n=n, links=[x[0] for x in lk], weights=[x[1] for x in lk],
-                    b=[_float(x, "b[i]") for x in b], delta_max=_int(d.get("delta_max"), "delta_max", 0, n),
-                    alive=alive_v, positions=pos)
+        if set(map(type, alive)) - {bool}:
+            raise WireError("bad_field", "alive must be booleans")
+        fb = _floats(b, "b[i]")
+        return dict(t=_float(d.get("t"), "t"), n=n, links=links, weights=_numbers(weights, links),
+                    b=b if fb is None else fb, delta_max=_int(d.get("delta_max"), "delta_max", 0, n),
+                    alive=alive, positions=pos)
+
+
+def _numbers(weights: list, links: list) -> list[list[float]]:
+    """Validate a tick's neighbour lists (returned as decoded) and their weights in a few vectorised passes
+    rather than one check per entry — every sensor decodes every tick, O(N · degree) entries (N = 100:
+    ~450; 2.3 → 0.3 ms). Each links[i] must be a list of ints in [0, n) without i, sorted and unique,
+    weights[i] as many finite numbers. Returns the weights as floats."""
+    n = len(links)
+    if set(map(type, links)) - {list} or set(map(type, weights)) - {list}:
+        raise WireError("bad_field", "links[i] and weights[i] must be lists")
+    lens = list(map(len, links))
+    if lens != list(map(len, weights)):
+        raise WireError("bad_field", "links[i] must be aligned with weights[i]")
+    flat = [j for li in links for j in li]
+    if set(map(type, flat)) - {int}:                    # (type(True) is bool: booleans are refused too)
+        raise WireError("bad_field", "links[i][j] must be ints")
+    if flat and (min(flat) < 0 or max(flat) >= n):
+        raise WireError("bad_field", f"links[i][j] must be in [0, {n - 1}]")
+    col = np.array(flat, dtype=np.int64)
+    row = np.repeat(np.arange(n), lens)
+    if (col == row).any() or ((row[1:] == row[:-1]) & (col[1:] <= col[:-1])).any():
+        bad = next(i for i, li in enumerate(links) if i in li or li != sorted(set(li)))
+        raise WireError("bad_field", f"links[{bad}] must be sorted, unique, without self, aligned with weights")
+    flat_w = _floats([w for wi in weights for w in wi], "weights[i][j]")
+    if flat_w is not None:      # some were ints: rows of floats
+        it = iter(flat_w)
+        return [[next(it) for _ in wi] for wi in weights]
+    return weights
+
+
+def _floats(v: list, name: str) -> list[float] | None:
+    """Check that ``v`` holds finite numbers (not bools), vectorised. None: all floats already, use ``v``
+    as it is; else ``v`` as floats."""
+    types = set(map(type, v))
+    if types - {float, int}:
+        raise WireError("bad_field", f"{name} must be numbers")
+    try:
+        finite = bool(np.isfinite(np.array(v, dtype=float)).all())
+    except OverflowError:             # an int beyond float range
+        finite = False
+    if not finite:
+        raise WireError("non_finite", f"{name} is not finite")
+    return None if int not in types else [float(x) for x in v]
 
 
 @dataclass

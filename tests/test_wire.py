@@ -25,6 +25,42 @@ def test_round_trip_is_bit_exact():
     assert set(d.payload) == {"chi1", "chi2"} and d.r == 2
 
 
+def _hostile_tick(**rows) -> bytes:
+    d = _tick().to_wire()
+    d.update(rows)
+    return msgpack.packb(d, use_bin_type=True)
+
+
+@pytest.mark.parametrize("rows,reason", [
+    (dict(links=[[1], [0, 2], [True]]), "bad_field"),                      # a boolean is not a sensor id
+    (dict(links=[[1], [0, 2], [1.0]]), "bad_field"),
+    (dict(links=[[1], [0, 1], [1]]), "bad_field"),                         # a link to itself
+    (dict(links=[[1], [2, 0], [1]]), "bad_field"),                         # unsorted
+    (dict(links=[[1], [0, 3], [1]]), "bad_field"),                         # no sensor 3
+    (dict(links=[[1], [0, 2**64 - 1], [1]]), "bad_field"),                 # beyond int64
+    (dict(links=[[1], [-1, 2], [1]]), "bad_field"),
+    (dict(links=[[1], [0], [1]]), "bad_field"),                            # weights[1] has two entries
+    (dict(links=[[1], "x", [1]]), "bad_field"),
+    (dict(weights=[[1.0], [1.0, float("nan")], [2.0]]), "non_finite"),
+    (dict(weights=[[1.0], [1.0, False], [2.0]]), "bad_field"),
+    (dict(b=[1.0, float("inf"), 1.0]), "non_finite"),
+    (dict(b=[1.0, "1", 1.0]), "bad_field"),
+    (dict(alive=[True, 1, True]), "bad_field"),
+])
+def test_a_hostile_tick_table_is_rejected(rows, reason):
+    """The tick's neighbour table is validated in vectorised passes (every sensor decodes every tick);
+    every entry still counts."""
+    with pytest.raises(wire.WireError) as e:
+        wire.decode("world/tick", _hostile_tick(**rows))
+    assert e.value.reason == reason
+
+
+def test_a_tick_with_integer_weights_decodes_to_floats():
+    t = wire.decode("world/tick", _hostile_tick(weights=[[1], [1.0, 2], [2.0]], b=[1, 0, 1.0]))
+    assert t.weights == [[1.0], [1.0, 2.0], [2.0]] and all(type(w) is float for row in t.weights for w in row)
+    assert t.b == [1.0, 0.0, 1.0] and all(type(v) is float for v in t.b)
+
+
 @pytest.mark.parametrize("key,data,reason", [
     ("agent/1/estimate", b"\xc1garbage", "bad_encoding"),
     ("agent/1/estimate", msgpack.packb([1, 2]), "bad_encoding"),
