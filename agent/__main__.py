@@ -12,7 +12,7 @@ import sys
 
 from .assemble import build_extra, build_sensor, build_target, extra_processes
 from .bus import ZenohBus
-from .runner import StopFlag, WaitBudget, drive, idle_poll_s, profiled
+from .runner import StopFlag, WaitBudget, drive, profiled
 from .scenario import ScenarioError, load_scenario
 
 
@@ -69,8 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         role, name = build_target(sc), "target/0"
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)
     try:
-        return profiled(name, lambda: drive(role, bus, name, role_budget(sc, mode, args.role), stop,
-                                            idle_s=idle_poll_s(mode)))
+        return profiled(name, lambda: drive(role, bus, name, role_budget(sc, mode, args.role), stop))
     finally:
         bus.close()
 

@@ -187,6 +187,10 @@ class LinkEmulator:
         if self._held_ms:
             self._release_ms(now)
 
+    def next_release(self) -> float | None:
+        """When the next payload delayed in ms is due (None: none held)."""
+        return self._held_ms[0][0] if self._held_ms else None
+
     def on_idle(self) -> bool:
         """Nothing else is arriving: a payload held back by a reorder goes in now; without a wall clock (the
         in-process engine) so do the payloads delayed in ms. True if something was delivered."""

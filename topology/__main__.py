@@ -11,7 +11,7 @@ import logging
 import sys
 
 from agent.bus import ZenohBus
-from agent.runner import StopFlag, drive, idle_poll_s, profiled
+from agent.runner import StopFlag, drive, profiled
 from agent.scenario import ScenarioError, load_scenario
 
 from .world import build_world
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         deadline = sc.run.deadline_s if mode == "lockstep" else 10 * sc.run.T / sc.run.speed
         rc = profiled("world/0", lambda: drive(world, bus, "world/0", deadline, stop, expect=expect,
-                                               startup_timeout_s=args.startup_timeout, idle_s=idle_poll_s(mode)))
+                                               startup_timeout_s=args.startup_timeout))
         logging.getLogger("world").info("done: %s", world.stats)
         return rc
     finally:

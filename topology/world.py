@@ -269,6 +269,12 @@ class WorldRole(Role):
         if self._open and now >= self._t0 + (self.k + 1) * self.period:
             self._advance()
 
+    def next_timer(self) -> float | None:
+        """Realtime: the moment the open tick closes (now, if the clock has yet to start after tick 0)."""
+        if not self.realtime or self.finished or self.k == 0 or self.paused or not self._open:
+            return None
+        return 0.0 if self._t0 is None else self._t0 + (self.k + 1) * self.period
+
     # ------------------------------------------------------------------ the link table
     def graph(self, k: int) -> tuple[np.ndarray, list[float]]:
         """Symmetric adjacency and visibility of tick k before the fault plan."""

@@ -69,7 +69,13 @@ class Role:
         return False
 
     def on_timer(self, now: float) -> None:
-        """Called periodically by a realtime driver with the wall-clock time (s)."""
+        """Called by a process driver with the wall-clock time (s, ``time.monotonic``): after every batch of
+        messages, at :meth:`next_timer`, and at least every idle poll."""
+
+    def next_timer(self) -> float | None:
+        """When the role next needs :meth:`on_timer` (``time.monotonic`` seconds; None: no timed work) — the
+        driver sleeps until then, not in short polls (an idle flock costs nothing)."""
+        return None
 
     def on_world_event(self, key: str, msg: Message) -> None:
         """``world/event`` (subscribe it to get fault-plan transitions, topology/faults.py): a ``fault`` is

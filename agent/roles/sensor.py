@@ -146,6 +146,9 @@ class SensorRole(Role):
     def on_timer(self, now: float) -> None:
         self.link.on_timer(now)
 
+    def next_timer(self) -> float | None:
+        return self.link.next_release()
+
     def on_idle(self) -> bool:
         return self.link.on_idle()
 
