@@ -39,10 +39,14 @@ def disagreement(own: np.ndarray, others: Mapping[int, np.ndarray],
     """
     if trim > 0 and others:
         return trimmed_disagreement(own, others, weights, trim)
-    acc = np.zeros_like(np.asarray(own, dtype=float))
-    for j in sorted(others):
-        w = 1.0 if weights is None else float(weights[j])
-        acc = acc + w * (np.asarray(others[j], dtype=float) - own)
+    own = np.asarray(own, dtype=float)
+    acc = np.zeros_like(own)
+    term = np.empty_like(own)
+    for j in sorted(others):     # acc += w (ξⱼ − ξᵢ), in place (the same operations, bit for bit)
+        np.subtract(others[j], own, out=term)
+        if weights is not None:
+            term *= float(weights[j])
+        acc += term
     return acc
 
 
