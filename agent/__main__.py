@@ -16,21 +16,31 @@ from .runner import StopFlag, WaitBudget, drive, profiled
 from .scenario import ScenarioError, load_scenario
 
 
+#: the most of a realtime period kept outside the sensors' rounds: it covers the sensors' late start (they
+#: begin once the target's truth for the tick has reached them: two hops after the world's tick) and the
+#: hops of the estimates to the target and of the states to the world. 10 ms was too little at 40 sensors
+#: and 10 Hz on 2 cores (34–113 sensor states reached the world after its clock closed their tick in 300
+#: ticks); 20 ms gave none. At 25 Hz two slots (13 ms) are less and are what is kept.
+TAIL_MAX_S = 0.020
+
+
 def role_budget(sc, mode: str, role: str) -> WaitBudget:
     """How long each wait may last (:class:`agent.runner.WaitBudget`). Lockstep waits long (only dead
-    processes miss it). Realtime shares the period T / speed out like a radio slot schedule of R + 3 slots
-    (R exchange rounds): a sensor's round r is due r + 2 slots after it began the tick (round 0 has two, for
-    the spread of the moments the neighbours begin; a round that closes early leaves its time to the next);
-    an intelligent target waits for the estimates R + 2 slots after its tick; the last slot carries the
-    states to the world before its clock closes the tick. Every wait of the warm-up tick 0 gets two periods."""
+    processes miss it). Realtime shares the period T / speed out like a radio slot schedule: a tail of
+    min(2 T / speed / (R + 3), ``TAIL_MAX_S``) is kept at its end for the estimates and states, the rest is
+    R + 1 slots for the R exchange rounds — a sensor's round r is due r + 2 slots after it began the tick
+    (round 0 has two, for the spread of the moments the neighbours begin; a round that closes early leaves
+    its time to the next); an intelligent target waits for the estimates until half the tail is left.
+    Every wait of the warm-up tick 0 gets two periods."""
     if mode == "lockstep":
         return WaitBudget(sc.run.deadline_s)
     period = sc.run.T / sc.run.speed
-    slot = period / (sc.estimator.rounds + 3)
+    R = sc.estimator.rounds
+    tail = min(2 * period / (R + 3), TAIL_MAX_S)
     if role == "sensor":
-        return WaitBudget(slot, schedule=True, head=1, warmup_s=2 * period)
+        return WaitBudget((period - tail) / (R + 1), schedule=True, head=1, warmup_s=2 * period)
     if role == "target":
-        return WaitBudget(slot * (sc.estimator.rounds + 2), warmup_s=2 * period)
+        return WaitBudget(period - tail / 2, warmup_s=2 * period)
     return WaitBudget(period / 2, warmup_s=2 * period)
 
 

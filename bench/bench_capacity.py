@@ -8,7 +8,8 @@ realtime at ``--hz`` ticks per second of wall time — the demo's T = 0.04 s of 
 stable only for T ≈ 0.03–0.046 against this target) at realtime factor T·hz — one OS process per sensor, the
 launcher's embedded router and recorder, no dashboard. Per size: missed round deadlines (the launcher counts
 the children's ``deadline on`` lines), late payloads (sum of the sensors' ``late_payloads``), ticks the world
-ran late or skipped, the achieved ticks/s and the network RMSE. "Holds" = zero missed deadlines. Writes every
+ran late or skipped, the achieved ticks/s and the network RMSE. "Holds" = zero missed round deadlines and
+no sensor state that reached the world after its clock closed the tick (``late_states``, ``missing_states``). Writes every
 size's numbers (JSON) and prints progress; ``--stop-at-first-miss`` ends the sweep at the first size that misses.
 """
 
@@ -54,7 +55,9 @@ def run_size(n: int, hz: float, minutes: float) -> dict:
     row = {"sensors": n, "hz": hz, "ticks": sc.run.ticks, "rc": info.get("rc"), "wall_s": round(wall, 1),
            "ticks_per_s": info.get("ticks_per_s"), "missed_deadlines": missed, "late_payloads": late,
            "world": {k: v for k, v in world.get("role", {}).items() if "late" in k or "miss" in k or "skip" in k},
-           "network_rmse": summary.get("network_rmse"), "holds": missed == 0 and info.get("rc") == 0}
+           "network_rmse": summary.get("network_rmse"),
+           "holds": missed == 0 and info.get("rc") == 0 and not any(world.get("role", {}).get(k, 0)
+                                                                     for k in ("late_states", "missing_states"))}
     print(f"[capacity] {n} sensors: {row['ticks_per_s']:.2f} ticks/s, missed deadlines {missed}, late payloads {late}, "
           f"RMSE {row['network_rmse']:.3g} — {'holds' if row['holds'] else 'does not hold'}", flush=True)
     return row

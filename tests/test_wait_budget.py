@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from agent.__main__ import role_budget
+from agent.__main__ import TAIL_MAX_S, role_budget
 from agent.runner import WaitBudget
 from agent.scenario import parse_scenario, scenario_data
 
@@ -33,13 +33,16 @@ def test_a_scheduled_round_inherits_the_time_an_earlier_round_left_unused():
 
 
 def test_realtime_budgets_fit_the_sensors_rounds_and_the_targets_wait_into_one_period():
-    sc = _demo(**{"run.speed": 1.0})
-    period, R = sc.run.T / sc.run.speed, sc.estimator.rounds
-    s, t = role_budget(sc, "realtime", "sensor"), role_budget(sc, "realtime", "target")
-    last_round = s.due((3, R - 1), 0.0, 0.0)
-    assert s.due((3, 0), 0.0, 0.0) >= 2 * period / (R + 3) - 1e-12    # round 0: two slots
-    assert last_round < t.due((3, 0), 0.0, 0.0) < period                # estimates in, then the target moves
-    assert period - t.due((3, 0), 0.0, 0.0) >= period / (R + 3) - 1e-12  # a slot left for the states
-    assert s.due((0, 0), 0.0, 0.0) == t.due((0, 0), 0.0, 0.0) == pytest.approx(2 * period)
+    for speed in (1.0, 0.4):          # the demo at 25 Hz, and at 10 Hz (bench/bench_capacity.py)
+        sc = _demo(**{"run.speed": speed})
+        period, R = sc.run.T / sc.run.speed, sc.estimator.rounds
+        s, t = role_budget(sc, "realtime", "sensor"), role_budget(sc, "realtime", "target")
+        last_round, target = s.due((3, R - 1), 0.0, 0.0), t.due((3, 0), 0.0, 0.0)
+        tail = period - last_round
+        assert tail == pytest.approx(min(2 * period / (R + 3), TAIL_MAX_S))
+        assert s.due((3, 0), 0.0, 0.0) == pytest.approx(2 * (period - tail) / (R + 1))   # round 0: two slots
+        assert last_round < target < period                # the estimates in, then the target moves
+        assert period - target == pytest.approx(tail / 2)  # and its state has half the tail to reach the world
+        assert s.due((0, 0), 0.0, 0.0) == t.due((0, 0), 0.0, 0.0) == pytest.approx(2 * period)
     lock = role_budget(sc, "lockstep", "sensor")
     assert not lock.schedule and lock.slot_s == sc.run.deadline_s and lock.warmup_s is None
