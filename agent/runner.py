@@ -73,6 +73,21 @@ def quick_gil_handoff() -> None:
     sys.setswitchinterval(0.001)
 
 
+#: the niceness of the run's observers (recorder, dashboard): when the flock's processes all wake at once
+#: at a tick (a burst of every sensor's rounds), the kernel runs the sensors first and the observers in the
+#: rest of the period — nothing of theirs is on the tick's critical path, and their queues absorb the wait
+OBSERVER_NICE = 10
+
+
+def observer_priority() -> None:
+    """Lower this process's CPU priority to :data:`OBSERVER_NICE` — call it first thing in an observer's
+    main, before any thread is started (Linux sets a thread's niceness; new threads inherit it)."""
+    try:
+        os.nice(OBSERVER_NICE)
+    except OSError:       # not permitted here: run at the default priority
+        pass
+
+
 #: the node loop's heartbeat: the longest it waits for a message. It also wakes for the current wait's deadline
 #: and the role's own timer (:meth:`Role.next_timer`: the realtime world's clock, payloads delayed in ms) when
 #: they are due, so no mode needs a fine poll; at 50 ms an idle flock's wake-ups (20 a second per process)

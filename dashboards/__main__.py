@@ -100,8 +100,11 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("live mode needs --run and --scenario (or give --recording)")
     if bool(args.tls_cert) != bool(args.tls_key):
         ap.error("--tls-cert and --tls-key go together")
+    from agent.runner import observer_priority
+
     from .state import RunInfo
 
+    observer_priority()          # the flock first (a live dashboard is an observer of the run)
     info = RunInfo.from_files(args.scenario, args.design)
     return run_live(args.run, args.connect, args.port, info, host=args.host, config_file=args.config,
                     exit_on_end=args.exit_on_end, stop_event=stop, operator_token=operator_token(args),

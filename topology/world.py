@@ -23,6 +23,7 @@ return — so a crash scheduled for tick k lands at tick k and the sensor is bac
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -60,6 +61,8 @@ def build_world(sc: Scenario, **kw) -> "WorldRole":
                      beta=sc.sensors.beta, speed=sc.run.speed, seed=sc.run.seed,
                      faults=FaultPlan(sc.faults, sc.sensors.n, sc.run.seed), **kw)
 
+
+log = logging.getLogger(__name__)
 
 #: the fault kinds the launcher executes; in lockstep the world waits for its ack (``launcher/event``)
 PROCESS_FAULTS = frozenset({"crash", "pause", "router_restart"})
@@ -266,7 +269,13 @@ class WorldRole(Role):
         if self._pause_started is not None:  # the clock stood still while paused
             self._t0 += now - self._pause_started
             self._pause_started = None
-        if self._open and now >= self._t0 + (self.k + 1) * self.period:
+        due = self._t0 + (self.k + 1) * self.period
+        if self._open and now >= due:
+            late_ms = (now - due) * 1000.0
+            if late_ms > 0.1 * self.period * 1000.0:    # the clock itself late: this process was held up
+                self.stats["late_closes"] = self.stats.get("late_closes", 0) + 1
+                self.stats["late_close_ms_max"] = round(max(self.stats.get("late_close_ms_max", 0.0), late_ms), 1)
+                log.info("world: tick %d closed %.1f ms late", self.k, late_ms)
             self._advance()
 
     def next_timer(self) -> float | None:
