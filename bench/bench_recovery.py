@@ -156,7 +156,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--period", type=int, default=40, help="ticks between faults (default 40)")
-    ap.add_argument("--speed", type=float, default=0.25, help="realtime factor (the main job's: 0.25)")
+    ap.add_argument("--speed", type=float, default=0.25, help="realtime factor (0.25: the pace of docs/reliability.md)")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "recovery.json"))
     ap.add_argument("--plot", default=None, help="PNG of the distributions (e.g. docs/recovery.png)")
     ap.add_argument("--keep", default=None, help="keep the run directories here")

@@ -136,6 +136,12 @@ def send(bus, verb: str, args: dict[str, Any], timeout_s: float = 5.0) -> Answer
     return Answer(APPLIED, text, k=msg.k, fault_id=fid)
 
 
+def when_applied(k: int | None, at: float) -> str:
+    """When the launcher applied a kill / restart: at the newest tick it had seen, or — before the first
+    tick (it answers k = 0 then) — at the wall-clock time its answer came (``at``, epoch seconds)."""
+    return f"at tick {k}" if k else f"at {time.strftime('%H:%M:%S', time.localtime(at))}"
+
+
 def _launcher_answer(bus, verb: str, msg: Control, members: dict[str, bool], end: float, at: float) -> Answer:
     """The launcher's answer to kill / restart, at the newest tick the launcher had seen (k = 0 before the
     first tick: then the time it came is printed instead)."""
@@ -143,7 +149,7 @@ def _launcher_answer(bus, verb: str, msg: Control, members: dict[str, bool], end
     if not msg.args.get("applied"):
         return Answer(REFUSED, f"refused: {msg.args.get('reason') or 'by the launcher'}")
     k = msg.k or None
-    when = f"at tick {k}" if k is not None else f"at {time.strftime('%H:%M:%S', time.localtime(at))}"
+    when = when_applied(k, at)
     if verb == "kill":
         return Answer(APPLIED, f"applied {when}: {name} killed (SIGKILL); "
                                f"`flocktrack fault restart agent=...` brings it back", k=k)

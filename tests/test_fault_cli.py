@@ -79,6 +79,10 @@ def test_fault_ps_and_logs_on_two_live_runs(tmp_path, monkeypatch, capsys):
         assert rc == 0 and "applied: heal_fault" in text, text
         rc, text = _fault(capsys, "heal_fault", f"id={fid + 50}", *on_a)
         assert rc == 1 and f"no live fault {fid + 50}" in text, text
+        # the sensors' own verb: sent, with no acknowledgement to wait for (it is recorded below)
+        rc, text = _fault(capsys, "outlier_burst", "agent=2", "ticks=2", *on_a)
+        assert rc == 0 and "sent control/outlier_burst" in text and "the sensors apply it" in text, text
+        assert "applied" not in text, text
         # the launcher's verbs: kill, then restart — both acknowledged, and the member is back
         rc, text = _fault(capsys, "kill", "agent=1", *on_a)
         assert rc == 0 and re.search(r"applied at tick \d+: agent/1 killed", text), text
@@ -104,7 +108,7 @@ def test_fault_ps_and_logs_on_two_live_runs(tmp_path, monkeypatch, capsys):
     # what was sent: only what was applied or refused by the run — nothing for what was refused here
     keys = {k for k, _m, _t in read_recording(tmp_path / "a" / "recording.mcap").messages if k.startswith("control/")}
     assert keys == {"control/partition", "control/link_loss", "control/inject", "control/heal_fault", "control/kill",
-                    "control/restart"}, keys
+                    "control/restart", "control/outlier_burst"}, keys
 
 
 @pytest.mark.slow

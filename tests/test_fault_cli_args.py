@@ -1,16 +1,15 @@
 """``flocktrack fault`` before and around the network: the argument names each verb takes come from its
 typed command (agent/wire.py), a name it does not take is refused with a "did you mean" and nothing is
-sent, ``--connect`` alone finds the only run on a router, and the answers without a tick or without an
-acknowledgement say so. A fake bus stands in for the run where one is needed (the live runs:
-tests/test_fault_cli.py)."""
+sent, ``--connect`` alone on a router with several runs names them, and a launcher's answer without a tick
+says when it came. (The live runs: tests/test_fault_cli.py.)"""
 
 from __future__ import annotations
 
-import re
+import time
 
 import pytest
 
-from agent.wire import CONTROL_VERBS, Control, command
+from agent.wire import CONTROL_VERBS, command
 from flocktrack import fault_client as fc
 from flocktrack.cli import main
 
@@ -46,64 +45,42 @@ def test_an_argument_name_the_verb_does_not_take_is_refused_with_did_you_mean(wo
     assert said in err and "nothing sent" in err, err
 
 
-def test_connect_without_run_names_the_runs_when_the_router_has_several(monkeypatch, capsys):
-    import flocktrack.ps as ps
+def test_connect_without_run_names_the_runs_when_the_router_has_several(tmp_path, capsys):
+    """A real router with two runs' members on it (their liveliness tokens): ``--connect`` alone names both and
+    sends nothing; once they are gone, it says there is no run."""
+    import subprocess
+    import sys
 
-    monkeypatch.setattr(ps, "runs_on", lambda ep, cfg=None, run=None, listen_s=0.6: {
-        "beta": ps.RunSeen("beta", ep), "alpha": ps.RunSeen("alpha", ep)})
-    assert main(["fault", "pause", "--connect", "tcp/127.0.0.1:9"]) == fc.NO_ANSWER
-    assert "2 runs on tcp/127.0.0.1:9, say which with --run: alpha, beta" in capsys.readouterr().err
-    monkeypatch.setattr(ps, "runs_on", lambda ep, cfg=None, run=None, listen_s=0.6: {})
-    assert main(["fault", "pause", "--connect", "tcp/127.0.0.1:9"]) == fc.NO_ANSWER
-    assert "no run on tcp/127.0.0.1:9" in capsys.readouterr().err
+    from agent.bus import ZenohBus
+    from flocktrack.launch import free_port
 
-
-class FakeBus:
-    """The run as ``fault_client.send`` sees it: whoever listens answers ``answer(verb, args)`` (or nothing)."""
-
-    prefix = "ft/fake/"
-
-    def __init__(self, answer):
-        self.answer, self.subs, self.sent = answer, {}, []
-
-    def subscribe(self, key, fn):
-        self.subs[key] = fn
-
-    def watch_members(self, fn):
-        fn("agent/1", True)
-
-    def await_subscriber(self, key, timeout_s):
-        return True
-
-    def publish(self, key, msg):
-        self.sent.append((key, msg))
-        reply = self.answer(msg.verb, msg.args)
-        if reply is not None:
-            self.subs[reply[0]](*reply)
-
-    def poll(self, s):
-        pass
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    router = subprocess.Popen([sys.executable, "-m", "flocktrack.router", "--listen", ep], stdout=subprocess.PIPE,
+                              text=True)
+    buses = []
+    try:
+        assert "listening on" in router.stdout.readline()
+        for run in ("beta", "alpha"):
+            buses.append(ZenohBus(run, connect=ep))
+            buses[-1].declare_token("world/0")
+        assert main(["fault", "pause", "--connect", ep]) == fc.NO_ANSWER
+        err = capsys.readouterr().err
+        assert f"2 runs on {ep}, say which with --run: alpha, beta" in err, err
+        for b in buses:
+            b.close()
+        assert main(["fault", "pause", "--connect", ep]) == fc.NO_ANSWER
+        assert f"no run on {ep}" in capsys.readouterr().err
+    finally:
+        for b in buses:
+            b.close()
+        router.terminate()
+        router.wait(30)
 
 
-def test_a_kill_answered_without_a_tick_says_when_it_came():
-    bus = FakeBus(lambda verb, a: ("launcher/event", Control(k=0, verb=verb, args={
-        "agent": 1, "applied": True, "reason": "", "req": a["req"]})))
-    ans = fc.send(bus, "kill", {"agent": 1}, timeout_s=1)
-    assert ans.code == fc.APPLIED and ans.k is None
-    assert re.match(r"applied at \d\d:\d\d:\d\d: agent/1 killed \(SIGKILL\)", ans.text), ans.text
-
-
-def test_a_launcher_answer_with_a_tick_says_the_tick():
-    bus = FakeBus(lambda verb, a: ("launcher/event", Control(k=412, verb=verb, args={
-        "agent": 1, "applied": True, "reason": "", "req": a["req"]})))
-    ans = fc.send(bus, "restart", {"agent": 1}, timeout_s=1)
-    assert ans.code == fc.APPLIED and ans.k == 412
-    assert ans.text == "applied at tick 412: agent/1 restarted and back in the run", ans.text
-
-
-def test_an_outlier_burst_is_reported_sent_not_applied():
-    bus = FakeBus(lambda verb, a: None)
-    ans = fc.send(bus, "outlier_burst", {"agent": 1, "ticks": 2}, timeout_s=1)
-    assert ans.code == fc.APPLIED and [k for k, _m in bus.sent] == ["control/outlier_burst"]
-    assert "sent control/outlier_burst" in ans.text
-    assert "no acknowledgement for this verb: the sensors apply it" in ans.text and "applied" not in ans.text
+def test_the_launchers_answer_names_its_tick_or_else_the_time():
+    """A kill or restart is applied at the newest tick the launcher has seen; before the first one it answers
+    k = 0, and the time the answer came is said instead. (The full answers, live: tests/test_fault_cli.py.)"""
+    at = time.mktime((2026, 12, 2, 14, 5, 9, 0, 0, -1))
+    assert fc.when_applied(412, at) == "at tick 412"
+    assert fc.when_applied(0, at) == fc.when_applied(None, at) == "at 14:05:09"
