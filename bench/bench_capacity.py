@@ -54,7 +54,8 @@ def run_size(n: int, hz: float, minutes: float) -> dict:
     missed = int(info.get("missed_deadlines", 0))
     row = {"sensors": n, "hz": hz, "ticks": sc.run.ticks, "rc": info.get("rc"), "wall_s": round(wall, 1),
            "ticks_per_s": info.get("ticks_per_s"), "missed_deadlines": missed, "late_payloads": late,
-           "world": {k: v for k, v in world.get("role", {}).items() if "late" in k or "miss" in k or "skip" in k},
+           "world": {k: v for k, v in world.get("role", {}).items()
+                     if "late" in k or "miss" in k or "skip" in k or "slip" in k},
            "network_rmse": summary.get("network_rmse"),
            "holds": missed == 0 and info.get("rc") == 0 and not any(world.get("role", {}).get(k, 0)
                                                                      for k in ("late_states", "missing_states"))}

@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from agent.bus import LocalBus
 from agent.scenario import load_scenario, parse_scenario
@@ -73,6 +74,26 @@ def test_a_paused_realtime_world_holds_its_clock_through_deadlines():
     assert w.k == k0 + 1
     w.on_deadline()                        # unpaused, the guard works again
     assert w.k == k0 + 2
+
+
+def test_a_realtime_world_held_up_slips_its_clock_instead_of_shortening_the_next_tick():
+    sc = load_scenario(SCEN / "gu_hu_normal.toml")
+    w = build_world(sc, realtime=True)
+    w.attach(LocalBus())
+    w.start()
+    w.on_deadline()                        # the warm-up tick 0 (no sensor here: closed by the guard)
+    w.on_timer(0.0)                        # the clock starts: tick 1 closes at 1.0 period
+    w.on_timer(0.99 * w.period)
+    assert w.k == 1
+    w.on_timer(1.04 * w.period)            # 4 % late: on time enough, no slip
+    assert w.k == 2 and "clock_slips" not in w.stats
+    w.on_timer(2.5 * w.period)             # tick 2 closes half a period late (this process was held up) ...
+    assert w.k == 3 and w.stats["clock_slips"] == 1
+    assert w.stats["clock_slip_ms_max"] == pytest.approx(500 * w.period, abs=0.1)
+    w.on_timer(3.4 * w.period)             # ... so tick 3 still gets a whole period: it closes at 3.5, not 3.0
+    assert w.k == 3
+    w.on_timer(3.5 * w.period)
+    assert w.k == 4
 
 
 def test_controls_end_to_end_over_zenoh(tmp_path):
