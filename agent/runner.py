@@ -189,7 +189,7 @@ def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, idle_s
             last_key = key
             due = float("inf") if key is None else budget.due(key, now, step_began)
         elif key is not None and now >= due:
-            log.info("%s: deadline on %s", name, key)
+            log.info("%s: deadline on %s%s", name, key, role.waiting_for())
             role.on_deadline()
             # the same wait going on (e.g. a rejoin still short of estimates): one budget more from now
             due = max(budget.due(key, now, step_began), now + budget.slot_s)

@@ -52,3 +52,20 @@ def test_a_lockstep_sensor_never_skips():
     s0, pubs = _behind("lockstep")
     assert s0.counters["skipped_ticks"] == 0 and s0.k == 1
     assert sorted({k for what, k in pubs if what == "xchg"}) == [0, 1]
+
+
+def test_a_missed_round_names_the_neighbours_it_waited_for():
+    """The driver's ``deadline on (k, r)`` line says whose payload did not come (agent/runner.py logs
+    :meth:`Role.waiting_for`)."""
+    data = scenario_data(str(SCEN / "gu_hu_normal.toml"), [], **{"run.ticks": 8, "run.mode": "lockstep"})
+    sc = parse_scenario(data, "gu_hu_normal.toml")
+    bus = LocalBus()
+    w, tgt, s0 = build_world(sc), build_target(sc), build_sensor(sc, 0)
+    for r in (w, tgt, s0):
+        r.attach(bus)
+    w.start()
+    bus.drain()
+    assert s0.waiting and s0._nbrs
+    said = s0.waiting_for()
+    assert said == " — no payload from " + ", ".join(f"agent/{j}" for j in s0._nbrs), said
+    assert w.waiting_for() == ""          # (a role that does not say)

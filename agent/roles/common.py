@@ -60,6 +60,11 @@ class Role:
             return None
         return (getattr(self, "k", 0), getattr(self, "r", 0))
 
+    def waiting_for(self) -> str:
+        """What the current wait still lacks, for the driver's ``deadline on`` log line (" — …"; "" if
+        the role does not say)."""
+        return ""
+
     def on_member(self, role: str, ident: int, alive: bool) -> None:
         """Membership change seen by the transport (a process appeared or vanished)."""
 

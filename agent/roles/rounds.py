@@ -37,8 +37,12 @@ class RoundInbox:
 
     def complete(self, k: int, r: int, neighbours: Collection[int], held: Collection[int]) -> bool:
         """Has every neighbour's payload of (k, r) arrived, or been ``held`` for later by the link emulator?"""
+        return not self.missing(k, r, neighbours, held)
+
+    def missing(self, k: int, r: int, neighbours: Collection[int], held: Collection[int]) -> list[int]:
+        """The neighbours whose payload of (k, r) has neither arrived nor been ``held`` for later."""
         got = self._buf.get((k, r), {})
-        return all(j in got or j in held for j in neighbours)
+        return [j for j in neighbours if j not in got and j not in held]
 
     def take(self, k: int, r: int, neighbours: Collection[int]) -> dict[int, dict[str, np.ndarray]]:
         """The neighbours' payloads of (k, r) (the round closes: a missing one is a dropped link, counted)."""

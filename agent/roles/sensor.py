@@ -247,6 +247,12 @@ class SensorRole(Role):
         self.r += 1
         self._open_round()
 
+    def waiting_for(self) -> str:
+        if self.r < 0:
+            return " — the neighbours' estimates (rejoining)" if self.join.pending else ""
+        late = self.inbox.missing(self.k, self.r, self._nbrs, self.link.withheld(self.k, self.r))
+        return " — no payload from " + ", ".join(f"agent/{j}" for j in late) if late else ""
+
     def on_deadline(self) -> None:
         if self.join.give_up_waiting():
             self._try_begin()
