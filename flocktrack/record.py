@@ -357,9 +357,10 @@ def _write_stats(rec: McapRecorder, failed: list[str]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     from agent.bus import ZenohBus
-    from agent.runner import StopFlag, observer_priority, profiled, quick_gil_handoff
+    from agent.runner import StopFlag, lean_zenoh_runtime, observer_priority, profiled, quick_gil_handoff
 
     observer_priority()
+    lean_zenoh_runtime()
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     meta = json.loads(Path(args.meta).read_text()) if args.meta else {}

@@ -69,3 +69,19 @@ def test_a_missed_round_names_the_neighbours_it_waited_for():
     said = s0.waiting_for()
     assert said == " — no payload from " + ", ".join(f"agent/{j}" for j in s0._nbrs), said
     assert w.waiting_for() == ""          # (a role that does not say)
+
+
+def test_a_sensor_schedules_its_rounds_from_the_ticks_arrival():
+    """:meth:`SensorRole.step_anchor` is the moment the world's tick reached it — also when the sensor begins
+    the tick later (here: tick 3, announced while tick 0's rounds were still waiting), so a late sensor gets
+    the rest of the tick's slots, not a new set (agent/runner.py counts the schedule from it)."""
+    import time
+
+    t0 = time.monotonic()
+    s0, _pubs = _behind("realtime")
+    t1 = time.monotonic()
+    assert s0.k == 3 and s0.waiting
+    anchor = s0.step_anchor(3)
+    assert anchor is not None and t0 <= anchor <= t1
+    assert s0.step_anchor(0) is None            # a tick gone by is forgotten with its messages
+    assert s0.step_anchor(99) is None           # a tick not seen yet has no anchor

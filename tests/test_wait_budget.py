@@ -1,6 +1,6 @@
 """The declared wait budgets of the node loop (agent/runner.py ``WaitBudget``, agent/__main__.py
 ``role_budget``): lockstep waits only catch dead processes; in realtime a sensor's exchange rounds share the
-period as a slot schedule anchored at the tick's start, round 0 with a head start, the target's wait for the
+period as a slot schedule anchored at the tick's arrival, round 0 with a head start, the target's wait for the
 estimates ends before the world's clock closes the tick, and the warm-up tick 0 waits long."""
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ def test_realtime_budgets_fit_the_sensors_rounds_and_the_targets_wait_into_one_p
         s, t = role_budget(sc, "realtime", "sensor"), role_budget(sc, "realtime", "target")
         last_round, target = s.due((3, R - 1), 0.0, 0.0), t.due((3, 0), 0.0, 0.0)
         tail = period - last_round
-        assert tail == pytest.approx(min(2 * period / (R + 3), TAIL_MAX_S))
-        assert s.due((3, 0), 0.0, 0.0) == pytest.approx(2 * (period - tail) / (R + 1))   # round 0: two slots
+        assert tail == pytest.approx(min(period / (R + 3), TAIL_MAX_S))
+        assert s.due((3, 0), 0.0, 0.0) == pytest.approx(3 * (period - tail) / (R + 2))   # round 0: three slots
         assert last_round < target < period                # the estimates in, then the target moves
         assert period - target == pytest.approx(tail / 2)  # and its state has half the tail to reach the world
         assert s.due((0, 0), 0.0, 0.0) == t.due((0, 0), 0.0, 0.0) == pytest.approx(2 * period)

@@ -11,13 +11,14 @@ import logging
 import sys
 
 from agent.bus import ZenohBus
-from agent.runner import StopFlag, drive, profiled
+from agent.runner import StopFlag, drive, lean_zenoh_runtime, profiled
 from agent.scenario import ScenarioError, load_scenario
 
 from .world import build_world
 
 
 def main(argv: list[str] | None = None) -> int:
+    lean_zenoh_runtime()
     ap = argparse.ArgumentParser(prog="python -m topology")
     ap.add_argument("--scenario", required=True)
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447")

@@ -387,6 +387,7 @@ class WorldRole(Role):
             self._check()
         elif msg.k < self.k:
             self.stats["late_states"] += 1
+            log.info("world: state of agent/%d for tick %d came after the tick closed (now at %d)", msg.src, msg.k, self.k)
 
     def _on_target_state(self, key: str, msg: Message) -> None:
         assert isinstance(msg, State)
@@ -413,7 +414,11 @@ class WorldRole(Role):
             self._step_budget -= 1
             if self._step_budget <= 0:
                 self.paused, self._step_budget = True, None
-        self.stats["missing_states"] += len(self._expected - set(self._states))
+        missing = self._expected - set(self._states)
+        if missing:
+            self.stats["missing_states"] += len(missing)
+            log.info("world: tick %d closed without the states of %d sensors (%s)", self.k, len(missing),
+                     _few(sorted(missing)))
         for i, s in self._states.items():
             self.positions[i] = s.pos[: self.positions.shape[1]]
         if self._target_state is not None:
@@ -426,3 +431,9 @@ class WorldRole(Role):
             self._publish_tick()
         else:
             self.publish("world/end", End(k=self.k, reason="done"))
+
+
+def _few(ids: list[int], most: int = 8) -> str:
+    """'agent/1, agent/4, … (+12)': a log line's list of sensors, short."""
+    head = ", ".join(f"agent/{i}" for i in ids[:most])
+    return head + (f", … (+{len(ids) - most})" if len(ids) > most else "")

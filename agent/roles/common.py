@@ -60,6 +60,12 @@ class Role:
             return None
         return (getattr(self, "k", 0), getattr(self, "r", 0))
 
+    def step_anchor(self, k: int) -> float | None:
+        """When (``time.monotonic()``) this role learned that step ``k`` began — for a sensor, the moment the
+        world's tick k reached it — or None if it does not say (then the driver takes the moment the role's
+        first wait of the step began). A realtime slot schedule counts from it (agent/runner.py WaitBudget)."""
+        return None
+
     def waiting_for(self) -> str:
         """What the current wait still lacks, for the driver's ``deadline on`` log line (" — …"; "" if
         the role does not say)."""

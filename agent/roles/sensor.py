@@ -53,6 +53,7 @@ class SensorRole(Role):
         self.p = np.zeros_like(self.q) if p0 is None else np.array(p0, float)
         self.k, self.r = 0, -1          # tick being (or next to be) processed; exchange round (-1: not in a tick)
         self._ticks: dict[int, Tick] = {}
+        self._tick_arrived: dict[int, float] = {}   # when each tick reached us (step_anchor)
         self._truth: dict[int, Truth] = {}
         self._prior: np.ndarray | None = None
         self._nbrs: list[int] = []
@@ -97,6 +98,7 @@ class SensorRole(Role):
             self._forget_past()
         if msg.k >= self.k and msg.n > self.i:
             self._ticks[msg.k] = msg
+            self._tick_arrived.setdefault(msg.k, time.monotonic())
             if self.r < 0 and msg.k > self.k and not (self.k in self._ticks and self.k in self._truth):
                 # the world has moved past ticks we never got (their tick or truth was lost, e.g. while the
                 # router was down): coast through them, so that we take part again from tick msg.k on
@@ -104,6 +106,13 @@ class SensorRole(Role):
                     self._predict_blind(msg.n)
                     self.counters["coasted_ticks"] += 1
             self._try_begin()
+
+    def step_anchor(self, k: int) -> float | None:
+        """Tick k's rounds are scheduled from the moment its world tick reached us, not from when we could
+        begin it (its truth come, the previous tick done): a sensor that begins late — descheduled, or
+        still waiting out the last tick — gets the rest of the tick's slots, not a whole new set, so one
+        late tick does not make the next one late too (agent/__main__.py role_budget)."""
+        return self._tick_arrived.get(k)
 
     def _on_truth(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Truth)
@@ -294,5 +303,6 @@ class SensorRole(Role):
     def _forget_past(self) -> None:
         """Drop what belongs to ticks before ``self.k``: tick and truth messages, buffered payloads."""
         self._ticks = {kk: m for kk, m in self._ticks.items() if kk >= self.k}
+        self._tick_arrived = {kk: t for kk, t in self._tick_arrived.items() if kk >= self.k}
         self._truth = {kk: m for kk, m in self._truth.items() if kk >= self.k}
         self.inbox.forget_before(self.k)
