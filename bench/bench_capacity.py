@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import tempfile
 import time
@@ -27,6 +28,7 @@ sys.path.insert(0, str(ROOT))
 
 from agent.scenario import parse_scenario, scenario_data  # noqa: E402 - after the sys.path insert above
 from flocktrack.run import run_zenoh_to_dir  # noqa: E402 - same
+from machine_gaps import GapMonitor  # noqa: E402 - bench/ is this script's directory
 
 
 def size_data(n: int, hz: float, minutes: float) -> dict:
@@ -45,8 +47,11 @@ def run_size(n: int, hz: float, minutes: float) -> dict:
     with tempfile.TemporaryDirectory(prefix=f"capacity{n}_") as d:
         out = Path(d)
         t0 = time.monotonic()
-        summary, info = run_zenoh_to_dir(sc, data, out, quiet=True, timeout_s=minutes * 60 * 3 + 300)
+        with GapMonitor() as gaps:      # the machine's own stops, beside the run (bench/machine_gaps.py)
+            summary, info = run_zenoh_to_dir(sc, data, out, quiet=True, timeout_s=minutes * 60 * 3 + 300)
         wall = time.monotonic() - t0
+        missed_ticks = sorted({int(k) for f in (out / "logs").glob("*.log")
+                               for k in re.findall(r"deadline on \((\d+), \d+\)", f.read_text(errors="replace"))})
         late = sum(int(json.loads(f.read_text()).get("role", {}).get("late_payloads", 0))
                    for f in (out / "stats").glob("agent_*.json"))
         world = json.loads(next((out / "stats").glob("world_*.json")).read_text()) \
@@ -57,11 +62,24 @@ def run_size(n: int, hz: float, minutes: float) -> dict:
            "world": {k: v for k, v in world.get("role", {}).items()
                      if "late" in k or "miss" in k or "skip" in k or "slip" in k},
            "network_rmse": summary.get("network_rmse"),
+           # the ticks with a missed deadline; and the moments the machine stopped a 1 ms sleeper > 20 ms
+           "ticks_with_misses": missed_ticks[:200], "machine_gaps": _gaps_summary(gaps.result()),
            "holds": missed == 0 and info.get("rc") == 0 and not any(world.get("role", {}).get(k, 0)
                                                                      for k in ("late_states", "missing_states"))}
-    print(f"[capacity] {n} sensors: {row['ticks_per_s']:.2f} ticks/s, missed deadlines {missed}, late payloads {late}, "
-          f"RMSE {row['network_rmse']:.3g} — {'holds' if row['holds'] else 'does not hold'}", flush=True)
+    g = row["machine_gaps"] or {}
+    print(f"[capacity] {n} sensors: {row['ticks_per_s']:.2f} ticks/s, missed deadlines {missed} in "
+          f"{len(missed_ticks)} ticks, late payloads {late}, RMSE {row['network_rmse']:.3g}, machine stopped "
+          f"> 20 ms {g.get('count', '?')}× (longest {g.get('max_ms', '?')} ms) — "
+          f"{'holds' if row['holds'] else 'does not hold'}", flush=True)
     return row
+
+
+def _gaps_summary(g: dict | None) -> dict | None:
+    """bench/machine_gaps.py's result, its list of gaps cut to the 50 longest (ms)."""
+    if g is None:
+        return None
+    return {"count": g["count"], "max_ms": g["max_ms"], "min_ms": g["min_ms"],
+            "longest_ms": sorted((x[1] for x in g["gaps"]), reverse=True)[:50]}
 
 
 def main(argv: list[str] | None = None) -> int:
