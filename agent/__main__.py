@@ -16,30 +16,33 @@ from .runner import StopFlag, WaitBudget, drive, lean_zenoh_runtime, profiled
 from .scenario import ScenarioError, load_scenario
 
 
-#: the most of a realtime period kept after the sensors' rounds, for the hops of the estimates to the target
-#: and of the states to the world. (Until the rounds were counted from the tick's arrival — Role.step_anchor —
-#: the tail also had to cover the sensors' late start, two hops after the world's tick: 20 ms then.)
-TAIL_MAX_S = 0.016
+#: the most of a realtime period kept outside the sensors' rounds: it covers the sensors' late start (they
+#: begin once the target's truth for the tick has reached them: two hops after the world's tick) and the
+#: hops of the estimates to the target and of the states to the world. 10 ms was too little at 40 sensors
+#: and 10 Hz on 2 cores (34–113 sensor states reached the world after its clock closed their tick in 300
+#: ticks); 20 ms gave none. At 25 Hz two slots (13 ms) are less and are what is kept.
+TAIL_MAX_S = 0.020
 
 
 def role_budget(sc, mode: str, role: str) -> WaitBudget:
     """How long each wait may last (:class:`agent.runner.WaitBudget`). Lockstep waits long (only dead
-    processes miss it). Realtime shares the period T / speed out like a radio slot schedule, counted from
-    the moment the world's tick reached the sensor (:meth:`Role.step_anchor`): a tail of
-    min(T / speed / (R + 3), ``TAIL_MAX_S``) is kept at its end for the estimates and states, the rest is
-    R + 2 slots for the R exchange rounds — round r is due r + 3 slots after the tick came (round 0 has
-    three: the truth's hop from the target, the sensor's own start, and the spread of the moments the
-    neighbours begin; a round that closes early leaves its time to the next); an intelligent target waits
-    for the estimates until half the tail is left. A sensor that begins a tick late gets what is left of its slots, so a
-    stall of the machine costs the ticks it hits, not every one after (before: 8 ticks of ~90 missed
-    deadlines after a 37 ms freeze, 40 sensors at 10 Hz). Every wait of the warm-up tick 0 gets two periods."""
+    processes miss it). Realtime shares the period T / speed out like a radio slot schedule: a tail of
+    min(2 T / speed / (R + 3), ``TAIL_MAX_S``) is kept at its end for the estimates and states, the rest is
+    R + 1 slots for the R exchange rounds — a sensor's round r is due r + 2 slots after it began the tick
+    (round 0 has two, for the spread of the moments the neighbours begin; a round that closes early leaves
+    its time to the next), and no round lasts past T / speed − tail / 2 after the world's tick reached the
+    sensor (the window: a sensor that begins late gets what is left of the tick, not a whole new schedule,
+    so a stall costs the ticks it hits — without it, 40 sensors at 10 Hz lost ~8 ticks of ~90 missed
+    deadlines after one 37 ms freeze of the machine); an intelligent target waits for the estimates until
+    half the tail is left. Every wait of the warm-up tick 0 gets two periods."""
     if mode == "lockstep":
         return WaitBudget(sc.run.deadline_s)
     period = sc.run.T / sc.run.speed
     R = sc.estimator.rounds
-    tail = min(period / (R + 3), TAIL_MAX_S)
+    tail = min(2 * period / (R + 3), TAIL_MAX_S)
     if role == "sensor":
-        return WaitBudget((period - tail) / (R + 2), schedule=True, head=2, warmup_s=2 * period)
+        return WaitBudget((period - tail) / (R + 1), schedule=True, head=1, warmup_s=2 * period,
+                          window_s=period - tail / 2)
     if role == "target":
         return WaitBudget(period - tail / 2, warmup_s=2 * period)
     return WaitBudget(period / 2, warmup_s=2 * period)

@@ -120,12 +120,15 @@ class WaitBudget:
 
     - ``schedule=False`` (lockstep): every wait gets ``slot_s`` from the moment it began — deadlines only
       catch dead or stopped processes.
-    - ``schedule=True`` (realtime): the sub-steps of a step share a slot schedule anchored at the moment
-      the role learned of the step (:meth:`Role.step_anchor`: a sensor's world tick arrived; else the step's
-      first wait): wait (k, r) is due ``(r + 1 + head) · slot_s`` after it. Time a fast round leaves unused
+    - ``schedule=True`` (realtime): the sub-steps of a step share a slot schedule anchored at the step's
+      first wait: wait (k, r) is due ``(r + 1 + head) · slot_s`` after it. Time a fast round leaves unused
       goes to the next one, and the first round's ``head`` extra slots absorb the spread of the moments
       the neighbours begin the tick (one descheduled for a few ms on a loaded machine would otherwise
       miss everybody's round 0).
+    - ``window_s``: no wait of a step lasts past ``window_s`` after the moment the role learned of the step
+      (:meth:`Role.step_anchor`: for a sensor, when the world's tick reached it). A role that begins a step
+      late — descheduled, or still waiting out the last one — gets what is left of the step's window, not a
+      whole new schedule, so one late tick does not make the next one late too.
     - ``warmup_s``: the budget of every wait of step 0, the run's first tick, in which routes and
       publishers are still being set up (the realtime world closes tick 0 on its states, not its clock).
     """
@@ -134,14 +137,19 @@ class WaitBudget:
     schedule: bool = False
     head: float = 0.0
     warmup_s: float | None = None
+    window_s: float | None = None
 
-    def due(self, key: tuple, began: float, step_began: float) -> float:
-        """When wait ``key`` (begun at ``began``, its step anchored at ``step_began``) times out."""
+    def due(self, key: tuple, began: float, step_began: float, anchor: float | None = None) -> float:
+        """When wait ``key`` times out: begun at ``began``, its step's first wait at ``step_began``, the role
+        told of the step at ``anchor`` (None: it does not say)."""
         if self.warmup_s is not None and key[0] == 0:
             return began + self.warmup_s
         if not self.schedule:
             return began + self.slot_s
-        return step_began + (key[1] + 1 + self.head) * self.slot_s
+        due = step_began + (key[1] + 1 + self.head) * self.slot_s
+        if self.window_s is not None and anchor is not None:
+            due = min(due, anchor + self.window_s)
+        return due
 
 
 def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: StopFlag | None = None,
@@ -190,7 +198,7 @@ def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: Stop
 
 def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, idle_s: float) -> None:
     last_key, due = None, float("inf")
-    step_began = time.monotonic()
+    step_began, anchor = time.monotonic(), None
     while not role.finished and not stop.set:
         # wake for the next message, the current wait's deadline, the role's timer or the idle poll, which first
         timer = role.next_timer()
@@ -202,15 +210,14 @@ def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, idle_s
         key = role.wait_key
         if key != last_key:
             if key is not None and (last_key is None or key[0] != last_key[0]):
-                anchor = role.step_anchor(key[0])
-                step_began = now if anchor is None else min(anchor, now)
+                step_began, anchor = now, role.step_anchor(key[0])
             last_key = key
-            due = float("inf") if key is None else budget.due(key, now, step_began)
+            due = float("inf") if key is None else budget.due(key, now, step_began, anchor)
         elif key is not None and now >= due:
             log.info("%s: deadline on %s%s", name, key, role.waiting_for())
             role.on_deadline()
             # the same wait going on (e.g. a rejoin still short of estimates): one budget more from now
-            due = max(budget.due(key, now, step_began), now + budget.slot_s)
+            due = max(budget.due(key, now, step_began, anchor), now + budget.slot_s)
 
 
 def write_stats(name: str, bus, role: Role | None = None) -> None:

@@ -62,8 +62,8 @@ class Role:
 
     def step_anchor(self, k: int) -> float | None:
         """When (``time.monotonic()``) this role learned that step ``k`` began — for a sensor, the moment the
-        world's tick k reached it — or None if it does not say (then the driver takes the moment the role's
-        first wait of the step began). A realtime slot schedule counts from it (agent/runner.py WaitBudget)."""
+        world's tick k reached it — or None if it does not say. A realtime step's waits end within a window
+        from it (agent/runner.py WaitBudget.window_s)."""
         return None
 
     def waiting_for(self) -> str:

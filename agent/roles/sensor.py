@@ -108,10 +108,10 @@ class SensorRole(Role):
             self._try_begin()
 
     def step_anchor(self, k: int) -> float | None:
-        """Tick k's rounds are scheduled from the moment its world tick reached us, not from when we could
-        begin it (its truth come, the previous tick done): a sensor that begins late — descheduled, or
-        still waiting out the last tick — gets the rest of the tick's slots, not a whole new set, so one
-        late tick does not make the next one late too (agent/__main__.py role_budget)."""
+        """The moment tick k's world tick reached us: its rounds end within a window from it, not from when
+        we could begin it (its truth come, the previous tick done) — a sensor that begins late, descheduled
+        or still waiting out the last tick, gets what is left of the tick, so one late tick does not make the
+        next one late too (agent/runner.py WaitBudget.window_s, agent/__main__.py role_budget)."""
         return self._tick_arrived.get(k)
 
     def _on_truth(self, key: str, msg: Message) -> None:
