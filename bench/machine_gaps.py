@@ -20,12 +20,16 @@ import time
 from pathlib import Path
 
 
-def watch(seconds: float, min_ms: float) -> dict:
-    """Sleep 1 ms at a time for ``seconds``; every wake-up later than ``min_ms`` is a gap."""
+def _first_in_line() -> None:
+    """This process at nice −20 (``os.nice`` adds to the niceness: call it once)."""
     try:
         os.nice(-20)
     except OSError:        # not permitted: the default priority (gaps then include run-queue waits)
         pass
+
+
+def watch(seconds: float, min_ms: float) -> dict:
+    """Sleep 1 ms at a time for ``seconds``; every wake-up later than ``min_ms`` is a gap."""
     gaps: list[list[float]] = []
     end = time.monotonic() + seconds
     last = time.monotonic()
@@ -94,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--until-stdin-closes", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    _first_in_line()
     res = _until_stdin_closes(a.seconds, a.min_ms) if a.until_stdin_closes else watch(a.seconds, a.min_ms)
     text = json.dumps(res)
     if a.out:

@@ -71,10 +71,10 @@ def test_a_missed_round_names_the_neighbours_it_waited_for():
     assert w.waiting_for() == ""          # (a role that does not say)
 
 
-def test_a_sensor_schedules_its_rounds_from_the_ticks_arrival():
+def test_a_sensors_rounds_end_within_a_window_from_the_ticks_arrival():
     """:meth:`SensorRole.step_anchor` is the moment the world's tick reached it — also when the sensor begins
     the tick later (here: tick 3, announced while tick 0's rounds were still waiting), so a late sensor gets
-    the rest of the tick's slots, not a new set (agent/runner.py counts the schedule from it)."""
+    what is left of the tick's window, not a new schedule (agent/runner.py ``WaitBudget.window_s``)."""
     import time
 
     t0 = time.monotonic()

@@ -1,8 +1,8 @@
 """The declared wait budgets of the node loop (agent/runner.py ``WaitBudget``, agent/__main__.py
 ``role_budget``): lockstep waits only catch dead processes; in realtime a sensor's exchange rounds share the
 period as a slot schedule anchored at the tick's start and bounded by a window from the tick's arrival, round 0
-with a head start, the target's wait for the
-estimates ends before the world's clock closes the tick, and the warm-up tick 0 waits long."""
+with a head start, the target's wait for the estimates ends before the world's clock closes the tick, and the
+warm-up tick 0 waits long."""
 
 from __future__ import annotations
 
