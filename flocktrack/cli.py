@@ -1,5 +1,8 @@
 """The ``flocktrack`` command.
 
+SCENARIO is a scenario file or the name of a bundled one (``flocktrack scenarios`` lists them).
+
+    flocktrack scenarios [show NAME]              (the bundled scenarios; show prints one, to start from)
     flocktrack validate SCENARIO
     flocktrack run SCENARIO [--transport zenoh|inproc] [--mode lockstep|realtime] [--ticks N] [--seed S]
                             [--estimator NAME] [--rounds R] [--set section.key=value ...]
@@ -26,6 +29,9 @@ from pathlib import Path
 from agent.estimators.registry import names as estimator_names
 from agent.estimators.registry import specs
 from agent.scenario import ScenarioError, load_scenario, parse_scenario, scenario_data
+
+from . import __version__
+from .resources import MissingDataError, scenario_arg
 
 
 class _Lazy:
@@ -59,6 +65,26 @@ class _Parser(argparse.ArgumentParser):
             if hint:
                 message = f"{message}; {hint.strip()}"
         super().error(message)
+
+
+def cmd_scenarios(args) -> int:
+    """The bundled scenarios, a line each; ``show NAME``: one of them as TOML (to start a new one from)."""
+    from .resources import UnknownScenarioError, scenario_description, scenario_file, scenario_names
+
+    if args.action == "show":
+        try:
+            sys.stdout.write(scenario_file(args.name).read_text(encoding="utf-8"))
+        except UnknownScenarioError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        return 0
+    names = scenario_names()
+    width = max(map(len, names))
+    for name in names:
+        print(f"{name:<{width}}  {scenario_description(name)}")
+    print("\n`flocktrack run NAME` runs one; `flocktrack scenarios show NAME > my.toml` copies one to edit.",
+          file=sys.stderr)
+    return 0
 
 
 def cmd_validate(args) -> int:
@@ -97,9 +123,7 @@ def cmd_run(args) -> int:
         print(f"{sc.run.name}: {sc.run.ticks} ticks in {info['wall_s']:.1f} s over {args.transport} — network RMSE "
               f"{_g(summary.get('network_rmse'))}, final {_g(summary.get('final_rmse'))}, "
               f"min distance {_g(summary.get('min_inter_agent_distance'))}, λ₂ min {_g(summary.get('lambda2_min'))}\n"
-              f"results in {out}/: summary.json, metrics.csv, run.json"
-              + (", recording.mcap, events.json, logs/" if args.transport == "zenoh" or args.record else ""),
-              flush=True)
+              f"results in {out}/: {', '.join(run_outputs(out))}", flush=True)
 
     if args.transport == "inproc":
         summary, info = run_inproc_to_dir(sc, data, out, record=args.record, show_progress=True)
@@ -125,6 +149,16 @@ def cmd_run(args) -> int:
         print(f"error: run ended with code {info['rc']}; see {out}/logs/", file=sys.stderr)
         return 1
     return 0
+
+
+#: what a run may write to its directory, in the order the README's table gives them
+RUN_OUTPUTS = ("summary.json", "metrics.csv", "scenario.toml", "design.json", "meta.json", "run.json", "recording.mcap",
+               "events.json", "logs/", "stats/", "dashboard_token")
+
+
+def run_outputs(out: Path) -> list[str]:
+    """The run outputs that ``out`` holds (a directory's name ends with ``/``)."""
+    return [name for name in RUN_OUTPUTS if (out / name.rstrip("/")).exists()]
 
 
 def _g(v) -> str:
@@ -290,7 +324,7 @@ def cmd_replay(args) -> int:
 
 def _add_run(sub) -> None:
     r = sub.add_parser("run", help="run a scenario")
-    r.add_argument("scenario")
+    r.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
     r.add_argument("--transport", choices=["inproc", "zenoh"], default="zenoh",
                    help="zenoh: one OS process per agent over an embedded router (default); inproc: one process")
     r.add_argument("--mode", choices=["lockstep", "realtime"], help="override run.mode")
@@ -374,13 +408,18 @@ def _add_inspection(sub) -> None:
 def parser() -> _Parser:
     """The ``flocktrack`` command line: every sub-command, the ones of other modules registered by them."""
     ap = _Parser(prog="flocktrack", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--version", action="version", version=f"flocktrack {__version__}")
     sub = ap.add_subparsers(dest="cmd", required=True)
+    ls = sub.add_parser("scenarios", help="list the bundled scenarios; `show NAME` prints one")
+    ls.add_argument("action", nargs="?", choices=["list", "show"], default="list")
+    ls.add_argument("name", nargs="?", help="with show: the scenario")
+    ls.set_defaults(fn=cmd_scenarios)
     v = sub.add_parser("validate", help="check a scenario file")
-    v.add_argument("scenario")
+    v.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
     v.set_defaults(fn=cmd_validate)
     _add_run(sub)
     dg = sub.add_parser("design", help="solve and store a scenario's pre-run design (its estimator's design hook)")
-    dg.add_argument("scenario")
+    dg.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
     dg.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
     dg.add_argument("--out", required=True)
     dg.set_defaults(fn=cmd_design)
@@ -399,10 +438,16 @@ def parser() -> _Parser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
+    ap = parser()
+    args = ap.parse_args(argv)
+    if getattr(args, "action", None) == "show" and not args.name:
+        ap.parse_args(["scenarios", "--help"])
     try:
         return args.fn(args)
     except ScenarioError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except MissingDataError as exc:   # a broken install: say what is missing and how to mend it
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -67,10 +67,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from .compose_keys import KEYS_MOUNT, KeysError, check_keys, stage_keys
 from .launch import RestartPolicy
-
-ROOT = Path(__file__).resolve().parents[1]
+from .resources import scenario_arg
 
 ROUTER_PORT = 7447
 APP_DIR = "/app"                       # WORKDIR of the image: the project's sources (no tests)
@@ -78,7 +79,7 @@ VENV_DIR = "/opt/flocktrack"           # the image's virtual environment (on PAT
 CONF_DIR = "/etc/flocktrack"           # where the configs appear in the containers
 DATA_DIR = "/data"                     # the recorder's named volume
 DASHBOARD_PORT = 8080                  # the dashboard's port inside its container
-ROUTER_CONFIG = f"{APP_DIR}/broker_cfg/compose_router.json5"
+ROUTER_CONFIG = "compose_router.json5"  # shipped in the package's broker_cfg/ (python -m flocktrack.router --config)
 RESTART_MARKER = "/tmp/.flocktrack-started"   # in the container's own filesystem: survives a restart
 STOP_GRACE = "5s"                      # the launcher's shutdown grace (Launcher.shutdown grace_s)
 DEFAULT_IMAGE = "flocktrack:local"
@@ -371,11 +372,6 @@ def _rejoin_on_restart(argv: list[str], name: str) -> list[str]:
 
 # ============================================================================ YAML
 
-_PLAIN = re.compile(r"[A-Za-z/][A-Za-z0-9_./@+=-]*(?::[A-Za-z0-9_./@+=-]+)*")
-_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
-_RESERVED = {"y", "n", "yes", "no", "on", "off", "true", "false", "null", "~"}
-
-
 def escape_dollars(obj):
     """Compose interpolates ``$VAR`` in every string of the file (commands too): a literal ``$`` is
     written ``$$``. (The files in ``compose/`` that configs point to are not interpolated.)"""
@@ -388,87 +384,45 @@ def escape_dollars(obj):
     return obj
 
 
-def _scalar(v) -> str:
-    if v is None:
-        return "null"
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return json.dumps(v)
-    if isinstance(v, str):
-        if _PLAIN.fullmatch(v) and v.lower() not in _RESERVED:
-            return v
-        return json.dumps(v, ensure_ascii=False)
-    raise TypeError(f"cannot write {type(v).__name__} to YAML")
+class _ComposeDumper(yaml.SafeDumper):
+    """PyYAML's safe dumper, written the way a person writes a compose file: multi-line strings as
+    literal blocks, lists of scalars on one line, mappings in block style, keys in their given order,
+    a block list indented under its key."""
+
+    def increase_indent(self, flow: bool = False, indentless: bool = False):
+        return super().increase_indent(flow, False)
 
 
-def _key(k: str) -> str:
-    return k if _KEY.fullmatch(k) and k.lower() not in _RESERVED else json.dumps(k, ensure_ascii=False)
+def _str(dumper: yaml.SafeDumper, s: str):
+    return dumper.represent_scalar("tag:yaml.org,2002:str", s, style="|" if "\n" in s else None)
 
 
-def _literal_ok(s: str) -> bool:
-    return ("\n" in s and not s.startswith((" ", "\n")) and "\r" not in s
-            and all(c == "\n" or c == "\t" or c.isprintable() for c in s))
+def _list(dumper: yaml.SafeDumper, items: list):
+    flat = all(x is None or isinstance(x, (bool, int, float)) or (isinstance(x, str) and "\n" not in x) for x in items)
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", items, flow_style=flat)
 
 
-def _is_scalar(v) -> bool:
-    return v is None or isinstance(v, (bool, int, float, str))
-
-
-def _emit(obj, indent: int, out: list[str]) -> None:
-    pad = " " * indent
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            head = f"{pad}{_key(k)}:"
-            if isinstance(v, str) and _literal_ok(v):
-                chomp = "" if v.endswith("\n") and not v.endswith("\n\n") else ("-" if not v.endswith("\n") else "+")
-                out.append(f"{head} |{chomp}")
-                body = v[:-1] if v.endswith("\n") else v
-                out.extend((pad + "  " + line) if line else "" for line in body.split("\n"))
-            elif _is_scalar(v):
-                out.append(f"{head} {_scalar(v)}")
-            elif isinstance(v, dict) and not v:
-                out.append(f"{head} {{}}")
-            elif isinstance(v, list) and all(_is_scalar(x) and not (isinstance(x, str) and "\n" in x) for x in v):
-                out.append(f"{head} [" + ", ".join(json.dumps(x, ensure_ascii=False) if isinstance(x, str)
-                                                   else _scalar(x) for x in v) + "]")
-            else:
-                out.append(head)
-                _emit(v, indent + 2, out)
-    elif isinstance(obj, list):
-        for item in obj:
-            if isinstance(item, dict) and item:
-                sub: list[str] = []
-                _emit(item, indent + 2, sub)
-                out.append(pad + "- " + sub[0][indent + 2:])
-                out.extend(sub[1:])
-            elif _is_scalar(item):
-                out.append(f"{pad}- {_scalar(item)}")
-            else:
-                raise TypeError("nested lists are not written")
-    else:
-        out.append(pad + _scalar(obj))
+_ComposeDumper.add_representer(str, _str)
+_ComposeDumper.add_representer(list, _list)
 
 
 def to_yaml(doc: dict, header: str = "") -> str:
-    """A small, deterministic YAML writer for the compose document (block mappings, flow lists of
-    scalars, literal blocks for multi-line text); ``$`` is escaped for Compose interpolation."""
-    out: list[str] = [f"# {line}".rstrip() for line in header.splitlines()]
-    top = escape_dollars(doc)
-    for i, (k, v) in enumerate(top.items()):
-        if (i or out) and not _is_scalar(v):
+    """The compose document as YAML (PyYAML), ``$`` escaped for Compose interpolation, a comment
+    ``header`` first and a blank line between the top-level sections."""
+    out = [f"# {line}".rstrip() for line in header.splitlines()]
+    for k, v in escape_dollars(doc).items():
+        if out:
             out.append("")
-        _emit({k: v}, 0, out)
+        out.append(yaml.dump({k: v}, Dumper=_ComposeDumper, sort_keys=False, allow_unicode=True,
+                             default_flow_style=False, width=1 << 16).rstrip("\n"))
     return "\n".join(out) + "\n"
 
 
 # ============================================================================ the Dockerfile
 
-DOCKERFILE = """\
+_DOCKERFILE_HEAD = """\
 # The image of every service of docker-compose.yml (router, recorder, dashboard, world, target,
-# sensor-i). Generated by `flocktrack compose` (flocktrack/compose.py); regenerate rather than edit.
+# sensor-i). Generated by `flocktrack compose`; regenerate rather than edit.
 # BASE_IMAGE: any Debian-like image with python3 (>= 3.11) and its venv module: the registry's
 # python:3.11-slim by default, or one made without a registry by `flocktrack image` (docs/deploy.md).
 ARG BASE_IMAGE=python:3.11-slim
@@ -486,11 +440,13 @@ ENV PYTHONUNBUFFERED=1 \\
     PATH={venv}/bin:$PATH
 
 WORKDIR {app}
+"""
 
+_DOCKERFILE_SOURCES = """
 # 1. the dependencies alone, in a virtual environment (a distribution's python3 refuses system-wide
 #    pip installs): this layer is built once, shared by every service, rebuilt only when
 #    pyproject.toml changes
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md LICENSE ./
 RUN python3 -m venv {venv} \\
  && for p in agent topology dashboards flocktrack; do mkdir -p "$p" && touch "$p/__init__.py"; done \\
  && pip install . \\
@@ -505,7 +461,19 @@ COPY flocktrack ./flocktrack
 COPY broker_cfg ./broker_cfg
 COPY scenarios ./scenarios
 RUN pip install --no-deps . && rm -rf build ./*.egg-info
+"""
 
+_DOCKERFILE_RELEASE = """
+# 1. the flocktrack release this file was generated with, in a virtual environment (a distribution's
+#    python3 refuses system-wide pip installs): from the wheels in {wheels}/ beside this file if you put
+#    its wheel there, else from the package index
+COPY {wheels}/ /tmp/wheels/
+RUN python3 -m venv {venv} \\
+ && pip install --find-links /tmp/wheels "flocktrack=={version}" \\
+ && rm -rf /tmp/wheels
+"""
+
+_DOCKERFILE_TAIL = """
 # 3. an unprivileged user; {data} is the recorder's mount point (a new named volume takes its owner)
 RUN useradd --create-home --uid 10001 --user-group flock \\
  && mkdir -p {data} && chown flock:flock {data}
@@ -513,7 +481,28 @@ USER flock
 
 EXPOSE {port} {dash}
 CMD ["flocktrack", "--help"]
-""".format(app=APP_DIR, data=DATA_DIR, port=ROUTER_PORT, dash=DASHBOARD_PORT, venv=VENV_DIR)
+"""
+
+WHEELS_DIR = "wheels"   # beside a release Dockerfile: wheels to install instead of the package index's
+
+
+def dockerfile_text(from_sources: bool) -> str:
+    """The image's Dockerfile: built from a source checkout (the build context is the checkout), or
+    from the installed release (``flocktrack==<version>``; the context is the compose file's directory)."""
+    from . import __version__
+
+    body = _DOCKERFILE_SOURCES if from_sources else _DOCKERFILE_RELEASE
+    return (_DOCKERFILE_HEAD + body + _DOCKERFILE_TAIL).format(
+        app=APP_DIR, data=DATA_DIR, port=ROUTER_PORT, dash=DASHBOARD_PORT, venv=VENV_DIR, wheels=WHEELS_DIR,
+        version=__version__)
+
+
+DOCKERFILE = dockerfile_text(from_sources=True)
+WHEELS_NOTE = f"""\
+Put a flocktrack wheel here (`pip wheel --no-deps flocktrack -w {WHEELS_DIR}/`, or the one you installed
+from) to build the image without the package index; the Dockerfile beside this directory installs the
+release it names from here first.
+"""
 
 
 # ============================================================================ generate
@@ -523,21 +512,34 @@ def _posix_rel(path: Path, start: Path) -> str:
 
 
 def scenario_label(path: str | Path) -> str:
-    """The scenario's path relative to the project root when inside it (``scenarios/demo.toml``),
-    else its file name: what the generated files say, wherever they are generated from."""
-    p = Path(path).resolve()
-    try:
-        return p.relative_to(ROOT).as_posix()
-    except ValueError:
-        return p.name
+    """``scenarios/NAME.toml`` for a scenario the package ships, else the file's name: what the
+    generated files say, wherever they are generated from."""
+    from .resources import SCENARIO_DIR, bundled_name
+
+    name = bundled_name(path)
+    return f"{SCENARIO_DIR}/{name}.toml" if name else Path(path).name
 
 
-def build_paths(out_dir: Path, root: Path = ROOT) -> tuple[str, str]:
-    """Build context and Dockerfile for a compose file in ``out_dir``: the flocktrack source tree (the
-    directory holding pyproject.toml) as context, the Dockerfile written beside the compose file."""
+def source_tree(*starts: Path) -> Path | None:
+    """The flocktrack source checkout that holds one of ``starts`` (the directory with flocktrack's
+    ``pyproject.toml``), searching each and its parents; None when generating from an installed release."""
+    for start in starts:
+        for d in (start.resolve(), *start.resolve().parents):
+            try:
+                if re.search(r'(?m)^name\s*=\s*"flocktrack"', (d / "pyproject.toml").read_text()):
+                    return d
+            except OSError:
+                continue
+    return None
+
+
+def build_paths(out_dir: Path, root: Path | None) -> tuple[str, str]:
+    """Build context and Dockerfile for a compose file in ``out_dir``: the flocktrack source tree
+    ``root`` as context and the Dockerfile written beside the compose file; with no source tree, the
+    compose file's own directory (the release Dockerfile needs nothing else)."""
     out_dir = out_dir.resolve()
-    if not (root / "pyproject.toml").is_file():
-        return ".", "Dockerfile"   # not a source checkout: DIR must hold the sources
+    if root is None:
+        return ".", "Dockerfile"
     context = _posix_rel(root, out_dir)
     dockerfile = "Dockerfile" if out_dir == root.resolve() else _posix_rel(out_dir / "Dockerfile", root)
     return context, dockerfile
@@ -556,7 +558,8 @@ def render(scenario: str | Path, out_dir: str | Path = ".", *, mode: str | None 
     data = scenario_data(str(scenario), sets or [], **{"run.mode": mode})
     sc = parse_scenario(data, str(scenario))
     label = scenario_label(scenario)
-    context, dockerfile = build_paths(Path(out_dir))
+    root = source_tree(Path(out_dir), Path.cwd())
+    context, dockerfile = build_paths(Path(out_dir), root)
     if (options.get("data") or options.get("secure")) and not options.get("user"):
         options["user"] = f"{os.getuid()}:{os.getgid()}"   # the host files they read or write are yours
     opts = ComposeOptions(context=context, dockerfile=dockerfile, **options)
@@ -568,11 +571,12 @@ def render(scenario: str | Path, out_dir: str | Path = ".", *, mode: str | None 
     header = (f"The multi-container deployment of {label} ({sc.sensors.n} sensors, {sc.run.mode}, run "
               f"{sc.run.name!r}, {opts.network} network{', TLS + ACL' if opts.secure else ''}).\n"
               f"Generated by `{cmd}`: regenerate, do not edit\n"
-              f"(tests/test_compose.py checks the committed file is up to date). See docs/deploy.md.\n\n"
+              f"(`{cmd} --check` says whether it is up to date). See docs/deploy.md.\n\n"
               f"The run's inputs are the files in {INPUTS_DIR}/ beside this file (generated too).\n\n"
               f"    {up}      # then open {where}\n")
-    return {"docker-compose.yml": to_yaml(doc, header), "Dockerfile": DOCKERFILE,
-            **{input_path(k): texts[k] for k in CONFIG_FILES}}
+    release = {} if root is not None else {f"{WHEELS_DIR}/README": WHEELS_NOTE}
+    return {"docker-compose.yml": to_yaml(doc, header), "Dockerfile": dockerfile_text(from_sources=root is not None),
+            **{input_path(k): texts[k] for k in CONFIG_FILES}, **release}
 
 
 def stage(scenario: str | Path, out_dir: str | Path, keys_dir: str | Path, *, network: str = "bridge",
@@ -632,7 +636,7 @@ def stale(files: dict[str, str], out_dir: str | Path) -> list[str]:
 # ============================================================================ CLI
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("scenario")
+    ap.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
     ap.add_argument("--out", default=".",
                     help="directory for docker-compose.yml, Dockerfile and compose/ (the run's inputs; default: .)")
     ap.add_argument("--image", default=DEFAULT_IMAGE, help=f"image name every service runs (default {DEFAULT_IMAGE})")
@@ -695,13 +699,19 @@ def cmd_compose(args) -> int:
     paths = write(files, args.out)
     if data:
         Path(data).mkdir(parents=True, exist_ok=True)
-    if not (ROOT / "pyproject.toml").is_file():
-        print(f"note: no flocktrack source tree found; {args.out} must hold the sources to build the image",
-              file=sys.stderr)
+    if "Dockerfile" in files and f"{WHEELS_DIR}/README" in files:
+        print(f"note: no flocktrack source checkout here: the image installs flocktrack=={_version()} (from "
+              f"{args.out}/{WHEELS_DIR}/ if you put its wheel there, else from the package index)", file=sys.stderr)
     secrets = f"; {INPUTS_DIR}/keys/ holds each service's credentials (keep it private)" if args.secure else ""
     print(f"wrote {', '.join(str(p) for p in paths)}{secrets}; start it with: "
           f"docker compose -f {paths[0]} up --build")
     return 0
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
 
 
 def register(subparsers) -> argparse.ArgumentParser:

@@ -51,8 +51,9 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-SECURE_TEMPLATE = ROOT / "broker_cfg" / "secure.json5"
+from .resources import scenario_arg
+
+SECURE_TEMPLATE = "secure.json5"   # the secure router's template: broker_cfg/secure.json5 of the package
 
 ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"]
@@ -231,13 +232,13 @@ def cert_pem(cert) -> bytes:
 
 # ============================================================================ configs
 
-def load_json5(path: Path) -> dict:
-    """The json5 template as a dict (comments and trailing commas stripped; keys may be bare)."""
-    text = path.read_text()
-    text = re.sub(r"^\s*//.*$", "", text, flags=re.M)
-    text = re.sub(r"([{,]\s*)([A-Za-z_][A-Za-z0-9_]*)\s*:", r'\1"\2":', text)
-    text = re.sub(r",(\s*[}\]])", r"\1", text)
-    return json.loads(text)
+def load_json5(path: str | Path) -> dict:
+    """A JSON5 config (a file, or the name of one in the package's ``broker_cfg/``) as a dict."""
+    import json5
+
+    from .resources import config_file
+
+    return json5.loads(config_file(path).read_text(encoding="utf-8"))
 
 
 def _merge(base: dict, extra: dict) -> dict:
@@ -274,7 +275,7 @@ def client_config(ks_dir: Path, ident: str, password: str, endpoint: str, lease_
 
 
 def router_config(ks_dir: Path, ident: str, password: str, listen: list[str], connect: list[str] = (),
-                  acl_block: dict | None = None, template: Path = SECURE_TEMPLATE) -> dict:
+                  acl_block: dict | None = None, template: str | Path = SECURE_TEMPLATE) -> dict:
     conf = load_json5(template)
     conf = _merge(conf, {
         "mode": "router",
@@ -434,7 +435,7 @@ def cmd_keys(args) -> int:
 def register(subparsers) -> None:
     """Add ``flocktrack keys SCENARIO --out DIR`` to the CLI."""
     k = subparsers.add_parser("keys", help="make a CA, per-process certificates/passwords, the router ACL and configs")
-    k.add_argument("scenario")
+    k.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
     k.add_argument("--out", required=True, help="directory for the key set")
     k.add_argument("--run", help="run name the ACL is written for (key prefix ft/<run>/); default: the scenario's")
     k.add_argument("--port", type=int, default=7447, help="router TLS port the client configs connect to")

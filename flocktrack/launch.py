@@ -34,9 +34,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .forkserver import ForkedProcess, die_with_parent, forkable, start_server
+from .resources import broker_config
 
-ROOT = Path(__file__).resolve().parents[1]
-LOCAL_ROUTER_CFG = ROOT / "broker_cfg" / "local.json5"
+LOCAL_ROUTER_CFG = "local.json5"   # the embedded router's config: broker_cfg/local.json5 of the package
 
 
 @dataclass(frozen=True)
@@ -55,13 +55,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def open_router(port: int, config_file: Path = LOCAL_ROUTER_CFG, host: str = "127.0.0.1", proto: str = "tcp"):
+def open_router(port: int, config_file: Path | None = None, host: str = "127.0.0.1", proto: str = "tcp"):
     """Open the embedded router in this process, listening on PROTO/host:port (``tls`` with a secure
-    config from ``flocktrack keys``)."""
+    config from ``flocktrack keys``; default config: the package's ``broker_cfg/local.json5``)."""
     from agent.bus import zenoh_config
     import zenoh
 
     zenoh.init_log_from_env_or("error")
+    config_file = config_file or broker_config(LOCAL_ROUTER_CFG)
     return zenoh.open(zenoh_config(listen=f"{proto}/{host}:{port}", mode="router", config_file=str(config_file)))
 
 
@@ -212,7 +213,7 @@ class Launcher:
 
     def _open_router(self):
         if self.mesh is not None:
-            return open_router(self.port, config_file=self.mesh.hub_config or LOCAL_ROUTER_CFG,
+            return open_router(self.port, config_file=self.mesh.hub_config,
                                host=self.mesh.listen_host)
         if self.keys is None:
             return open_router(self.port)
@@ -233,12 +234,11 @@ class Launcher:
         argv = list(c.argv) + ([c.rejoin_flag] if rejoin and c.rejoin_flag else [])
         env = dict(os.environ, PYTHONUNBUFFERED="1", RUST_LOG=os.environ.get("RUST_LOG", "error"))
         env["FLOCKTRACK_STATS_DIR"] = str(self.run_dir / "stats")
-        env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         if forkable(argv):   # python -m …: forked from the pre-imported template (flocktrack/forkserver.py)
-            c.proc = ForkedProcess(argv, env, str(ROOT))
+            c.proc = ForkedProcess(argv, env, os.getcwd())
         else:
             c.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                      env=env, preexec_fn=die_with_parent, cwd=str(ROOT))
+                                      env=env, preexec_fn=die_with_parent)
         self._event("spawn", c.name, pid=c.proc.pid, rejoin=rejoin, forked=isinstance(c.proc, ForkedProcess))
         threading.Thread(target=self._forward, args=(c, c.proc), daemon=True).start()
 

@@ -3,8 +3,8 @@
 ``flocktrack run`` opens its router inside the launcher process (``launch.open_router``); a deployment
 of separate containers or hosts needs the router as a process of its own, and this is it — the same
 ``eclipse-zenoh`` the agents use, so no separately installed ``zenohd`` is needed. It opens
-``zenoh.open(config)`` in router mode (config: the json5 file, e.g. ``broker_cfg/compose_router.json5``;
-``--listen`` overrides the file's listen endpoints), prints one ``listening on …`` line, and serves
+``zenoh.open(config)`` in router mode (config: a json5 file, or the name of one the package ships in
+``broker_cfg/``, e.g. ``compose_router.json5``; ``--listen`` overrides the file's listen endpoints), prints one ``listening on …`` line, and serves
 until SIGTERM or SIGINT, then closes the session and exits 0 (exit 1 if the router cannot open,
 e.g. the port is taken).
 """
@@ -19,7 +19,8 @@ import threading
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m flocktrack.router", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--config", default=None, help="Zenoh json5 config file (router mode is forced)")
+    ap.add_argument("--config", default=None, help="Zenoh json5 config file, or the name of one in the package's "
+                                                   "broker_cfg/ (router mode is forced)")
     ap.add_argument("--listen", default=None,
                     help="listen endpoint(s), comma-separated, e.g. tcp/0.0.0.0:7447 (default: the config's)")
     args = ap.parse_args(argv)
@@ -31,10 +32,16 @@ def main(argv: list[str] | None = None) -> int:
     import zenoh
 
     from .health import zenoh_config  # = agent.bus.zenoh_config, without importing numpy
+    from .resources import MissingDataError, config_file
 
     zenoh.init_log_from_env_or("error")
     try:
-        conf = zenoh_config(listen=args.listen, mode="router", config_file=args.config)
+        path = str(config_file(args.config)) if args.config else None
+    except (FileNotFoundError, MissingDataError) as exc:
+        print(f"error: --config: {exc}", file=sys.stderr)
+        return 1
+    try:
+        conf = zenoh_config(listen=args.listen, mode="router", config_file=path)
         session = zenoh.open(conf)
     except Exception as exc:  # zenoh.ZError: bad config, port in use, …
         print(f"error: cannot open the Zenoh router: {exc}", file=sys.stderr)

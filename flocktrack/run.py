@@ -238,10 +238,10 @@ def replay_dashboard(path: str | Path, port: int = 8080) -> int:
     """Serve a recording in the dashboard (time slider) until Ctrl-C."""
     import subprocess
 
-    from .launch import ROOT, die_with_parent
+    from .launch import die_with_parent
 
     proc = subprocess.Popen([sys.executable, "-m", "dashboards", "--recording", str(path), "--port", str(port)],
-                            cwd=str(ROOT), preexec_fn=die_with_parent)
+                            preexec_fn=die_with_parent)
     print(f"dashboard on http://localhost:{port} — Ctrl-C to quit", file=sys.stderr)
     try:
         return proc.wait()

@@ -26,11 +26,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .keys import load_json5
+from .resources import MissingDataError, config_file
 
-ROOT = Path(__file__).resolve().parents[1]
-MESH_DIR = ROOT / "broker_cfg" / "mesh"
-MESH_ROUTER = MESH_DIR / "router.json5"
-MESH_CLIENT = MESH_DIR / "client.json5"
+MESH_ROUTER = "mesh/router.json5"    # broker_cfg/ of the package: the router of one host of a mesh
+MESH_CLIENT = "mesh/client.json5"    # … and the config of every process on a host
 MESH_PORT = 7447
 
 
@@ -40,7 +39,7 @@ def mesh_router_id(name: str, addr: str) -> str:
     return "f" + hashlib.sha256(f"flocktrack mesh router {name} {addr}".encode()).hexdigest()[:31]
 
 
-def mesh_router_config(peers: list[str], port: int = MESH_PORT, base: Path = MESH_ROUTER,
+def mesh_router_config(peers: list[str], port: int = MESH_PORT, base: str | Path = MESH_ROUTER,
                        zid: str | None = None, other_zids: list[str] = ()) -> dict:
     """The router config of one host: listen on every interface, dial ``peers`` (addresses or names).
 
@@ -52,7 +51,7 @@ def mesh_router_config(peers: list[str], port: int = MESH_PORT, base: Path = MES
     "Network-namespace cuts"). A full queue towards another host now drops after 1 ms
     (``transport.link.tx.queue.congestion_control.drop.wait_before_drop``) — a payload that a dead link
     would have lost anyway — and the lease expires on time."""
-    conf = load_json5(base)
+    conf = load_json5(config_file(base))
     conf["listen"]["endpoints"] = [f"tcp/0.0.0.0:{port}"]
     conf["connect"]["endpoints"] = [f"tcp/{p}:{port}" for p in peers]
     if zid is not None:
@@ -65,7 +64,7 @@ def mesh_router_config(peers: list[str], port: int = MESH_PORT, base: Path = MES
 
 
 def mesh_configs(hosts: list[tuple[str, str]], out: str | Path, port: int = MESH_PORT,
-                 base: Path = MESH_ROUTER) -> dict[str, Path]:
+                 base: str | Path = MESH_ROUTER) -> dict[str, Path]:
     """Write ``host-<name>.json5`` for each (name, address) of ``hosts``: every router dials all routers
     listed before it, so each pair of hosts is linked once (a full mesh; the later host re-dials a lost
     link), with fixed ids and the QoS rule of :func:`mesh_router_config`. Returns name → path."""
@@ -116,7 +115,7 @@ class Host:
     name: str
     wrap: list[str] = field(default_factory=list)
     router_config: Path | None = None
-    client_config: Path = MESH_CLIENT
+    client_config: Path = field(default_factory=lambda: config_file(MESH_CLIENT))
     connect: str = f"tcp/127.0.0.1:{MESH_PORT}"
 
 
@@ -162,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m flocktrack.secure")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("router", help="run a standalone Zenoh router (one per host of a mesh)")
-    r.add_argument("--config", default=str(MESH_ROUTER))
+    r.add_argument("--config", default=MESH_ROUTER, help=f"a config file, or one the package ships (default {MESH_ROUTER})")
     r.add_argument("--listen", help="override listen/endpoints (comma-separated)")
     r.add_argument("--connect", help="override connect/endpoints (comma-separated)")
     m = sub.add_parser("mesh-configs", help="write one router config per host of a mesh")
@@ -171,7 +170,12 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     if args.cmd == "router":
-        return serve_router(args.config, listen=args.listen, connect=args.connect)
+        try:
+            path = config_file(args.config)
+        except (FileNotFoundError, MissingDataError) as exc:
+            print(f"error: --config: {exc}", file=sys.stderr)
+            return 1
+        return serve_router(path, listen=args.listen, connect=args.connect)
     hosts = [tuple(h.split("=", 1)) for h in args.host]
     for name, p in mesh_configs(hosts, args.out, args.port).items():
         print(f"{name}: {p}")

@@ -2,7 +2,16 @@
 
 Every module of this package that declares an :class:`agent.estimators.spec.EstimatorSpec` at module
 level is an estimator of the runtime: :func:`specs` finds them (a module is imported only if its source
-declares ``EstimatorSpec(``, so the fusion solvers are not loaded by every sensor). Estimators that need
+declares ``EstimatorSpec(``, so the fusion solvers are not loaded by every sensor). An installed package
+adds estimators through the entry-point group ``flocktrack.estimators`` (:data:`ENTRY_POINT_GROUP`): each
+entry point names an ``EstimatorSpec`` or a ``FusionSpec`` object, its name the spec's name, e.g. in the
+plug-in's ``pyproject.toml``::
+
+    [project.entry-points."flocktrack.estimators"]
+    toy_average = "toy_estimator:SPEC"
+
+Every process of a run finds them the same way (the sensors too), and their parameters are typed and
+checked like the built-in ones'. Estimators that need
 facts about the whole network (Chen's λ₀ over every switching graph, Zamani's SDP) receive them
 precomputed in ``design`` (DESIGN.md: the runtime computes graph-wide designs before the run).
 """
@@ -11,6 +20,7 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
+import sys
 from collections.abc import Mapping
 from functools import cache
 from pathlib import Path
@@ -20,6 +30,7 @@ from .base import Estimator
 from .spec import EstimatorSpec, FusionSpec
 
 _HERE = Path(__file__).resolve().parent
+ENTRY_POINT_GROUP = "flocktrack.estimators"
 
 
 def _declared(kind: type, marker: str) -> dict[str, Any]:
@@ -37,7 +48,44 @@ def _declared(kind: type, marker: str) -> dict[str, Any]:
                 if value.name in found and found[value.name] is not value:
                     raise RuntimeError(f"two estimators are named {value.name!r} ({mod.name} and another module)")
                 found[value.name] = value
+    for name, value, dist in _plugins(kind):
+        if name in found:
+            raise RuntimeError(f"the estimator plug-in {name!r} of {dist} has the name of another estimator; "
+                               f"rename its entry point and spec")
+        found[name] = value
     return found
+
+
+def _plugins(kind: type) -> list[tuple[str, Any, str]]:
+    """(name, spec, distribution) of every ``flocktrack.estimators`` entry point whose object is a
+    ``kind``. One that cannot be loaded, or is misnamed, is skipped with one line on stderr (the others
+    still work; a scenario naming it then gets the unknown-estimator error with the names there are)."""
+    from importlib.metadata import entry_points
+
+    out = []
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        dist = ep.dist.name if ep.dist is not None else "an installed package"
+        try:
+            value = ep.load()
+        except Exception as exc:  # a broken plug-in must not take the built-in estimators down with it
+            _skip(ep.name, dist, f"cannot be loaded ({type(exc).__name__}: {exc})")
+            continue
+        if not isinstance(value, (EstimatorSpec, FusionSpec)):
+            _skip(ep.name, dist, f"names a {type(value).__name__}, not an EstimatorSpec or FusionSpec")
+        elif value.name != ep.name:
+            _skip(ep.name, dist, f"names the spec {value.name!r}: the entry point's name must be the spec's")
+        elif isinstance(value, kind):
+            out.append((ep.name, value, dist))
+    return out
+
+
+_SKIPPED: set[str] = set()
+
+
+def _skip(name: str, dist: str, why: str) -> None:
+    if name not in _SKIPPED:   # specs() and fusion_specs() both look: say it once
+        _SKIPPED.add(name)
+        print(f"warning: estimator plug-in {name!r} of {dist} {why}; skipped", file=sys.stderr)
 
 
 @cache
@@ -72,9 +120,9 @@ def build_fusion(table: Mapping[str, Any], source: str = "scenario") -> tuple[st
 
 
 def register(spec: EstimatorSpec) -> None:
-    """Add an estimator defined outside this package (a notebook, a test, a plug-in package) to the
-    registry of this process. An estimator meant for every process of a run goes in a module of this
-    package instead (the sensor processes find it there)."""
+    """Add an estimator defined outside this package (a notebook, a test) to the registry of this
+    process. An estimator meant for every process of a run goes in a module of this package or in an
+    installed package's ``flocktrack.estimators`` entry point (the sensor processes find both)."""
     have = specs()
     if spec.name in have and have[spec.name] is not spec:
         raise ValueError(f"an estimator named {spec.name!r} is already registered")
