@@ -44,6 +44,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--operator-token-file", help="live: file holding the run's operator token (default: "
                                                   "$FLOCKTRACK_DASHBOARD_TOKEN, else a new token, its link logged)")
     ap.add_argument("--viewer-only", action="store_true", help="live: no operator at all (a read-only page)")
+    ap.add_argument("--max-tabs", type=int, default=16,
+                    help="live: browser tabs served at once; one more is refused with the reason (default 16)")
     ap.add_argument("--tls-cert", help="live: serve the page over HTTPS with this certificate (PEM) ...")
     ap.add_argument("--tls-key", help="... and its key (a secure run's: certs/dashboard-web.{pem,key})")
     ap.add_argument("--play", action="store_true", help="replay: start playing at once")
@@ -102,13 +104,15 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--tls-cert and --tls-key go together")
     from agent.runner import observer_priority
 
+    from .guard import Limits
     from .state import RunInfo
 
     observer_priority()          # the flock first (a live dashboard is an observer of the run)
     info = RunInfo.from_files(args.scenario, args.design)
     return run_live(args.run, args.connect, args.port, info, host=args.host, config_file=args.config,
                     exit_on_end=args.exit_on_end, stop_event=stop, operator_token=operator_token(args),
-                    tls=(args.tls_cert, args.tls_key) if args.tls_cert else None)
+                    tls=(args.tls_cert, args.tls_key) if args.tls_cert else None,
+                    limits=Limits(max_tabs=max(1, args.max_tabs)))
 
 
 def operator_token(args) -> str | None:

@@ -25,13 +25,16 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from agent import wire
 
 from . import plots
+from .guard import Limits, TabGuard
 from .state import DashboardState, ReplayModel, RunInfo, Snapshot
+from .tabs import DisplaySettings, GuardedGui, TabPanel, build_display, build_tab, clamp_index, render_tab
 
 log = logging.getLogger(__name__)
 
@@ -160,6 +163,7 @@ class ClientView:
     distance: float = 0.0                       #: the camera distance last commanded
     direction: np.ndarray = field(default_factory=lambda: plots.VIEW_DIRECTION.copy())
     fit_now: bool = True                        #: jump (not glide) to the framing at the next update
+    follow: bool = True                         #: glide after the flock (off once the tab's user moves it)
     zooming: bool = False
     #: (command number, point) of the camera positions / look-at points this process commanded, newest
     #: last, and those the page starts from (number 0). The page echoes them back, late at times and in any
@@ -207,21 +211,27 @@ class DashboardUI:
 
     def __init__(self, info: RunInfo, port: int = 8080, host: str = "127.0.0.1", *, live: bool = True,
                  send_control=None, replay: ReplayModel | None = None, verbose: bool = False,
-                 operator_token: str | None = None, tls: tuple[str, str] | None = None):
+                 operator_token: str | None = None, tls: tuple[str, str] | None = None,
+                 limits: Limits | None = None):
         """``tls``: (certificate, key) files — the page is then HTTPS on ``host:port`` (dashboards/tls.py)
-        and Viser itself listens on a free port of 127.0.0.1 behind it."""
+        and Viser itself listens on a free port of 127.0.0.1 behind it. ``limits``: what a tab may send
+        (dashboards/guard.py)."""
         import viser
 
         from .operator import Operators
 
         self.info, self.live, self.replay = info, live, replay
         self.operators = Operators(operator_token if live else None)
+        # every tab's messages are checked before Viser acts on them; on a replay page (nothing to steer)
+        # the shared widgets (slider, display) take any tab's valid update
+        self.guard = TabGuard(limits, shared_writable=not live)
         self.send_control = send_control
         v_host, v_port = ("127.0.0.1", 0) if tls else (host, port)
         self.server = viser.ViserServer(host=v_host, port=v_port, label=f"flocktrack · {info.name}",
                                         verbose=verbose) \
             if "verbose" in viser.ViserServer.__init__.__code__.co_varnames \
             else viser.ViserServer(host=v_host, port=v_port, label=f"flocktrack · {info.name}")
+        self.guard.install(self.server)
         self.tls_front = None
         if tls:
             from .tls import TlsFront
@@ -229,7 +239,11 @@ class DashboardUI:
             self.tls_front = TlsFront(host, port, self.server.get_port(), *tls)
         self.port = self.tls_front.port if self.tls_front else self.server.get_port()
         self.scheme = "https" if tls else "http"
+        #: the sensor the shared page highlights (the error panel's line): an operator's choice; each tab's
+        #: own inspector is in ``tabs`` (dashboards/tabs.py)
         self.selected: int | None = 0 if info.n else None
+        self.tabs: dict[int, TabPanel] = {}
+        self.display = DisplaySettings(circles=info.n <= 40)
         self.dirty = True                 # redraw even if the tick did not change
         self.timings = UiTimings()
         self._last_scene_k = None
@@ -238,8 +252,7 @@ class DashboardUI:
         self.replay_k = replay.first if replay else 0
         self.playing = False
         self.controls_sent: list[tuple[str, dict]] = []
-        # the camera: per browser tab, framed on the flock and gliding after it while "Follow" is on
-        self.follow = True
+        # the camera: per browser tab, framed on the flock and gliding after it while its "Follow" is on
         self._views: dict[int, ClientView] = {}
         self._framing: plots.Framing | None = None
         self._cam_lock = threading.RLock()
@@ -285,20 +298,10 @@ class DashboardUI:
                                         cast_shadow=False, receive_shadow=False)
         self.h_fusion = s.add_icosphere("/world/fusion", radius=0.4 * size, color=(148, 103, 189), visible=False,
                                         cast_shadow=False, receive_shadow=False)
-        self.h_sel_links = s.add_line_segments("/world/selected/links", zs, (255, 140, 0), thickness=4.0,
-                                               thickness_units="screen", visible=False)
-        self.h_sel_ellipse = s.add_line_segments("/world/selected/ellipse", zs, (30, 110, 200), thickness=3.0,
-                                                 thickness_units="screen", visible=False)
-        self.h_sel_ring = s.add_line_segments("/world/selected/ring", zs, (255, 140, 0), thickness=3.0,
-                                              thickness_units="screen", visible=False)
-        self.h_sel_est = s.add_point_cloud("/world/selected/estimate", z, (30, 110, 200), point_size=1.0 * size,
-                                           point_shape="diamond", precision="float32", visible=False)
-        self.h_sel_label = s.add_label("/world/selected/label", "", visible=False)
         self.marker_size = size
 
-        @s.on_click()
-        def _(event) -> None:  # click on the ground near a sensor selects it
-            self._pick(event.ray_origin, event.ray_direction, event.client_id)
+        # a click on the ground near a sensor selects it (in that tab)
+        s.on_click()(self.guard.safe(lambda e: self._pick(e.ray_origin, e.ray_direction, e.client_id), "pick"))
 
     def _pick(self, origin, direction, client_id: int | None = None) -> None:
         snap = self._last_snapshot
@@ -326,21 +329,30 @@ class DashboardUI:
         return self._last_scene_k
 
     def select(self, i: int | None, client_id: int | None = None) -> None:
-        """Inspect sensor ``i`` (a click in tab ``client_id``'s scene; None: not a tab's doing). The inspector
-        is shared by every tab; only the clicking tab's own operator fields follow it (:meth:`_retarget`)."""
-        with self._lock:
-            self.selected = i
-            self.dirty = True
-        if i is not None and hasattr(self, "g_node") and self.g_node.value != str(i):
-            self.g_node.value = str(i)
-        if i is not None:
+        """Tab ``client_id`` inspects sensor ``i`` (its dropdown, or its click in the scene): its own
+        inspector and overlays follow, and an operator's fields (:meth:`_retarget`) and the sensor the shared
+        page highlights. A viewer's choice changes its own tab only. (None: this process's choice, of the
+        shared highlight.)"""
+        if i is None:
+            return
+        i = clamp_index(i, self.info.n)
+        panel = self.tabs.get(client_id) if client_id is not None else None
+        if panel is not None:
+            panel.selected, panel.drawn = i, None
+            node = panel.widgets["node"]
+            if node.value != str(i):
+                node.value = str(i)
+        if client_id is None or client_id in self.operators.panels:
+            with self._lock:
+                self.selected = i
+                self.dirty = True
+                self._last_plot_k = None
+        if client_id is not None:
             self._retarget(client_id, i)
 
     def _retarget(self, client_id: int | None, i: int) -> None:
         """Tab ``client_id`` inspects sensor ``i``: if that tab is an operator's, its own "Sensor id" and
-        "Link a" follow. Another tab's choice — a viewer's above all — never touches them: the inspector is
-        on the shared GUI, the operator's fields are that operator's (None: a change made by this process,
-        which is nobody's tab)."""
+        "Link a" follow. Another tab's choice — a viewer's above all — never touches them."""
         panel = self.operators.panels.get(client_id) if client_id is not None else None
         if panel is not None:
             for h in (panel.g_kill_id, panel.g_link_a):
@@ -377,17 +389,17 @@ class DashboardUI:
         self._last_snapshot = snap
         self.dirty = False
         self._last_scene_k = snap.k
-        scale = float(self.g_err_scale.value) if self.g_err_scale.value > 0 else \
+        d = self.display
+        scale = d.err_scale if d.err_scale > 0 else \
             plots.auto_error_scale(err_rows if err_rows is not None else snap.errors)
-        sa = plots.scene_arrays(snap, selected=self.selected, error_scale=scale, link_range=self.info.link_range,
-                                show_circles=self.g_circles.value, nsig=float(self.g_nsig.value))
+        sa = plots.scene_arrays(snap, error_scale=scale, link_range=self.info.link_range, show_circles=d.circles)
         self._framing = plots.flock_framing(snap, min_radius=max(4 * self.marker_size, 2.0)) or self._framing
         with self.server.atomic():
             self._cloud(self.h_sensors, sa.sensor_points, sa.sensor_colors)
-            self._cloud(self.h_est, sa.estimate_points, sa.estimate_colors, self.g_estimates.value)
-            self._segments(self.h_links, sa.links, self.g_links.value)
-            self._segments(self.h_circles, sa.circles, self.g_circles.value)
-            self._segments(self.h_trail, sa.trail, self.g_trail.value)
+            self._cloud(self.h_est, sa.estimate_points, sa.estimate_colors, d.estimates)
+            self._segments(self.h_links, sa.links, d.links)
+            self._segments(self.h_circles, sa.circles, d.circles)
+            self._segments(self.h_trail, sa.trail, d.trail)
             if sa.target is not None:
                 self.h_target.position = tuple(sa.target)
                 self.h_target.visible = True
@@ -396,22 +408,7 @@ class DashboardUI:
                 self.h_fusion.visible = True
             else:
                 self.h_fusion.visible = False
-            sel_pos = sa.selected_pos
-            self._segments(self.h_sel_links, sa.selected_links)
-            self._segments(self.h_sel_ellipse, sa.ellipse, self.g_ellipse.value)
-            if sel_pos is not None:
-                self._segments(self.h_sel_ring, plots.circle_segments(sel_pos[None], 1.1 * self.marker_size, 24))
-                self.h_sel_label.position = tuple(sel_pos + np.array([0.0, 0.0, 1.5 * self.marker_size]))
-                self.h_sel_label.text = f"sensor {sa.selected}"
-                self.h_sel_label.visible = True
-            else:
-                self.h_sel_ring.visible = False
-                self.h_sel_label.visible = False
-            if sa.selected_est is not None:
-                self._cloud(self.h_sel_est, sa.selected_est[None].astype(np.float32), (30, 110, 200))
-            else:
-                self.h_sel_est.visible = False
-        self._render_inspect(snap)
+        self._render_tabs(snap)
         self.update_view()
         self.timings.scene_updates += 1
         self.timings.scene_s += time.perf_counter() - t0
@@ -426,27 +423,64 @@ class DashboardUI:
     #: zoomed in on (1.6 left it a third of the canvas it should fill)
     ZOOM_SLACK = 1.3
 
+    def _render_tabs(self, snap: Snapshot) -> None:
+        """Each tab's own selection and inspector text (dashboards/tabs.py)."""
+        for panel in tuple(self.tabs.values()):
+            self.guard.safe(render_tab, "render_tab")(panel, snap, self)
+
     def _on_disconnect(self, client) -> None:
         self._views.pop(client.client_id, None)
+        self.tabs.pop(client.client_id, None)
         self.operators.panels.pop(client.client_id, None)
 
     def add_operator_panel(self, gui, client_id: int | None):
-        """The run and fault controls on ``gui`` for tab ``client_id`` (dashboards/operator.py)."""
+        """The run and fault controls on ``gui`` for tab ``client_id`` (dashboards/operator.py); the tab may
+        change them (the guard), and is an operator once they are all built."""
         from .operator import build_panel
 
-        panel = build_panel(gui, client_id, self, self._operator_orders)
+        if client_id is not None:
+            gui = GuardedGui(gui, lambda h: self.guard.allow(h, client_id))
+        panel = build_panel(gui, client_id, self, self.layout)
         self.operators.panels[client_id] = panel
+        if client_id is not None:
+            self.guard.mark_operator(client_id)
         return panel
 
-    def _on_connect(self, client) -> None:
-        """A new tab: an operator's (the run's token in its websocket path) gets the controls on its own GUI;
-        every tab gets the framing at once (at the next update), and its camera reports are watched for the
-        user's own moves."""
+    def _add_tab_panels(self, client) -> None:
+        """A new tab's own view and inspector and, with the run's token, its operator controls. Neither may
+        fail half-way: a failure is logged once, the tab is told, and a half-built operator panel is removed
+        (the tab is then no operator)."""
         from .operator import websocket_path
 
-        if self.live and self.operators.is_operator(websocket_path(self.server, client.client_id)):
-            self.add_operator_panel(client.gui, client.client_id)
-            log.info("tab %s: operator", client.client_id)
+        cid = client.client_id
+        try:
+            self.tabs[cid] = build_tab(self, client)
+        except Exception:
+            self._panel_failed(client, "view and inspector")
+        if self.live and self.operators.is_operator(websocket_path(self.server, cid)):
+            try:
+                self.add_operator_panel(client.gui, cid)
+                log.info("tab %s: operator", cid)
+            except Exception:
+                self.operators.panels.pop(cid, None)
+                self._panel_failed(client, "operator controls")
+
+    def _panel_failed(self, client, what: str) -> None:
+        self.guard.counters["panel_failures"] += 1
+        if self.guard.counters["panel_failures"] == 1:
+            log.exception("tab %s: its %s could not be built (logged once)", client.client_id, what)
+        try:
+            client.add_notification(f"The {what} could not be built", "See the dashboard's log; reload the page.",
+                                    color="red", with_close_button=True)
+        except Exception:  # the tab is gone
+            pass
+
+    def _on_connect(self, client) -> None:
+        """A new tab: its own view and inspector, and an operator's (the run's token in its websocket path)
+        controls on its own GUI (:meth:`_add_tab_panels`); every tab gets the framing at once (at the next
+        update), and its camera reports are watched for the user's own moves. (Viser runs this in its thread
+        pool, off the live loop's thread: a new tab's first frame is Viser's backlog, sent by its event loop.)"""
+        self._add_tab_panels(client)
         view = ClientView()
         # the page reports its default pose first, then the server's initial camera (applied after its first
         # frames, possibly after our first command): both are ours, not the user's
@@ -458,7 +492,8 @@ class DashboardUI:
             pass
         with self._cam_lock:
             self._views[client.client_id] = view
-        client.camera.on_update(lambda cam, cid=client.client_id: self._on_camera(cid, cam))
+        client.camera.on_update(self.guard.safe(lambda cam, cid=client.client_id: self._on_camera(cid, cam),
+                                                "camera"))
         self.update_view(force=True)
 
     def _on_camera(self, cid: int, cam) -> None:
@@ -466,7 +501,7 @@ class DashboardUI:
         user moved the camera (drag, wheel, keys): stop following, so as not to fight them."""
         with self._cam_lock:
             view = self._views.get(cid)
-            if view is None or view.look_at is None or not self.follow:
+            if view is None or view.look_at is None or not view.follow:
                 return
             P, L = np.asarray(cam.position, float), np.asarray(cam.look_at, float)
             tol = 1e-3 * max(view.distance, 1.0)
@@ -475,40 +510,45 @@ class DashboardUI:
                 view.resend = seq < view.seq
                 return
         log.info("camera moved by the user in tab %s: no longer following the flock", cid)
-        self.follow = False
-        self.g_follow.value = False
+        view.follow = False
+        self._follow_box(cid, False)
 
-    def _set_follow(self, on: bool) -> None:
-        """The "Follow the flock" checkbox. Turned on, every tab glides from where its camera is now,
+    def _follow_box(self, cid: int, on: bool) -> None:
+        panel = self.tabs.get(cid)
+        if panel is not None and panel.widgets["follow"].value != on:
+            panel.widgets["follow"].value = on
+
+    def set_follow(self, cid: int, on: bool) -> None:
+        """Tab ``cid``'s "Follow the flock" checkbox. Turned on, the tab glides from where its camera is now,
         keeping its viewing direction (the user's orbit), to the flock."""
+        client = self.server.get_clients().get(cid)
         with self._cam_lock:
-            if on and not self.follow:
-                for cid, client in self.server.get_clients().items():
-                    view = self._views.get(cid)
-                    if view is None:
-                        continue
-                    try:
-                        P, L = np.array(client.camera.position, float), np.array(client.camera.look_at, float)
-                    except AssertionError:
-                        continue
-                    dist = float(np.linalg.norm(L - P))
-                    if dist > 1e-9:
-                        view.look_at, view.distance, view.direction = L, dist, (L - P) / dist
-                        view.seq += 1
-                        view.remember(view.seq, P, L)
-            self.follow = bool(on)
+            view = self._views.get(cid)
+            if view is None:
+                return
+            if on and not view.follow and client is not None:
+                try:
+                    P, L = np.array(client.camera.position, float), np.array(client.camera.look_at, float)
+                except AssertionError:
+                    P = L = np.zeros(3)
+                dist = float(np.linalg.norm(L - P))
+                if dist > 1e-9:
+                    view.look_at, view.distance, view.direction = L, dist, (L - P) / dist
+                    view.seq += 1
+                    view.remember(view.seq, P, L)
+            view.follow = bool(on)
         self.update_view(force=True)
 
-    def reset_view(self) -> None:
-        """The "Reset view" button: every tab framed on the flock at once, from the default direction, and
-        following it again."""
+    def reset_view(self, cid: int | None = None) -> None:
+        """Tab ``cid``'s "Reset view" button (None: every tab): framed on the flock at once, from the default
+        direction, and following it again."""
         with self._cam_lock:
-            for view in self._views.values():
-                view.fit_now = True
-                view.direction = plots.VIEW_DIRECTION.copy()
-            self.follow = True
-        if not self.g_follow.value:
-            self.g_follow.value = True
+            for c, view in self._views.items():
+                if cid is None or c == cid:
+                    view.fit_now, view.follow = True, True
+                    view.direction = plots.VIEW_DIRECTION.copy()
+        for c in ([cid] if cid is not None else list(self.tabs)):
+            self._follow_box(c, True)
         self.update_view(force=True)
 
     def update_view(self, force: bool = False) -> None:
@@ -530,7 +570,7 @@ class DashboardUI:
             clients = self.server.get_clients()
             for cid, view in list(self._views.items()):
                 client = clients.get(cid)
-                if client is None or not (self.follow or view.fit_now):
+                if client is None or not (view.follow or view.fit_now):
                     continue
                 try:
                     fov, aspect = float(client.camera.fov), float(client.camera.aspect)
@@ -628,26 +668,6 @@ class DashboardUI:
         if text != self.g_status.content:
             self.g_status.content = text
 
-    def _render_inspect(self, snap: Snapshot) -> None:
-        i = self.selected
-        if i is None or not 0 <= i < snap.n:
-            text = "click a sensor, or pick one above"
-        else:
-            nb = snap.neighbours[i] if i < len(snap.neighbours) else []
-            xn = snap.est_next.get(i)
-            P = snap.cov_pos.get(i)
-            e = snap.errors[i]
-            parts = [f"**sensor {i}** · {'alive' if snap.alive[i] else '**dead**'} · tick {snap.k}",
-                     f"position {np.array2string(snap.positions[i][:self.info.pos_dims], precision=2)}",
-                     f"own error eᵢ = {e:.3g}" if np.isfinite(e) else "no estimate this tick",
-                     "x̂ₖ₊₁ = " + (np.array2string(xn, precision=2) if xn is not None else "–"),
-                     "position σ = " + (np.array2string(np.sqrt(np.maximum(np.diag(P), 0)), precision=3)
-                                        + f" (ellipse: {self.g_nsig.value:g}σ)" if P is not None else "– (no covariance)"),
-                     f"neighbours ({len(nb)}): {', '.join(map(str, nb)) or 'none'}"]
-            text = "  \n".join(parts)
-        if text != self.g_inspect.content:
-            self.g_inspect.content = text
-
     # ------------------------------------------------------------------ GUI
     def control(self, verb: str, **args) -> None:
         """Send ``control/<verb>`` with ``args`` (what the buttons do); recorded in ``controls_sent``.
@@ -657,22 +677,22 @@ class DashboardUI:
         self.controls_sent.append((verb, args))
         self.send_control(verb, args)
 
+    #: where each part of the control panel goes, top to bottom: the shared parts (status, replay, the
+    #: legend) and each tab's own (dashboards/tabs.py: view, inspect; an operator's, dashboards/operator.py:
+    #: run control, faults, the plan-fault form, display)
+    LAYOUT = {"status": 1.0, "note": 1.5, "replay": 2.0, "run": 2.5, "view": 3.0, "inspect": 4.0, "faults": 5.0,
+              "plan": 6.0, "display": 7.0, "legend": 8.0}
+
     def _build_gui(self) -> None:
-        """The control panel (docked right), top to bottom: status, replay (or, live, an operator's run
-        control), view, inspect, (an operator's faults and planned faults), display; then the plots panel
-        (docked left). Each panel has its own builder; the order of the calls is the order on the page."""
+        """The shared control panel (docked right): the status, the replay's slider, the legend; then the
+        plots panel (docked left). Each tab adds its own panels at the places of :attr:`LAYOUT`."""
+        self.layout = dict(self.LAYOUT)
         self._gui_frame()
         if not self.live:
             self._gui_replay()
-        self._gui_view()
-        self._gui_inspect()
-        self._gui_display()
+            build_display(GuardedGui(self.server.gui, self.guard.allow), self, self.layout["display"])
+        self._gui_legend()
         self._gui_plots_panel()
-        # where an operator tab's own controls go (dashboards/operator.py): run control under the status,
-        # faults and the plan-fault form between inspect and display
-        a, b = self.f_inspect.order, self.f_display.order
-        self._operator_orders = {"run": (self.g_status.order + self.f_view.order) / 2,
-                                 "faults": a + (b - a) / 3, "plan": a + 2 * (b - a) / 3}
 
     def _gui_frame(self) -> None:
         """The theme, the docked control panel, the plot bookkeeping and the status line at its top."""
@@ -687,90 +707,43 @@ class DashboardUI:
         self._has_fusion = False          # once a fusion line is drawn it stays (the panel keeps its lines)
         self.h_plots: dict = {}
         self._plot_order = {k: 100 + i for i, k in enumerate(["errors", "tmsee", "disagreement", "lambda2", "rates"])}
-        self.g_status = gui.add_markdown("waiting for the first tick …")
+        self.g_status = gui.add_markdown("waiting for the first tick …", order=self.layout["status"])
         if self.live:
             gui.add_markdown("*read-only; the run and fault controls are on the run's operator link "
-                             "(`flocktrack run` prints it)*")
+                             "(`flocktrack run` prints it)*", order=self.layout["note"])
 
     def _gui_replay(self) -> None:
-        """Replay: the tick slider, play / pause / first / last, and the playback speed."""
-        gui = self.server.gui
+        """Replay: the tick slider, play / pause / first / last, and the playback speed (shared: a replay
+        has nothing to steer, and every tab watches the same recording)."""
+        gui = GuardedGui(self.server.gui, self.guard.allow)
         rp = self.replay
-        with gui.add_folder("Replay"):
+        safe = self.guard.safe
+        with gui.add_folder("Replay", order=self.layout["replay"]):
             self.g_slider = gui.add_slider("Tick", rp.first if rp else 0, max(rp.last if rp else 1, 1), 1,
                                            rp.first if rp else 0)
             bg = gui.add_button_group("Playback", ("Play", "Pause", "First", "Last"))
             self.g_play_speed = gui.add_slider("Playback ×", 0.1, 10.0, 0.1, 1.0)
+        self.g_slider.on_update(safe(lambda _e: self._seek(int(self.g_slider.value)), "seek"))
+        bg.on_click(safe(lambda e: self._playback(e.target.value), "playback"))
 
-            @self.g_slider.on_update
-            def _(event) -> None:
-                self.replay_k = int(self.g_slider.value)
-                self.dirty = True
+    def _seek(self, k: int) -> None:
+        self.replay_k = k
+        self.dirty = True
 
-            @bg.on_click
-            def _(event) -> None:
-                v = event.target.value
-                if v == "Play":
-                    self.playing = True
-                elif v == "Pause":
-                    self.playing = False
-                elif v == "First" and self.replay:
-                    self.playing = False
-                    self.g_slider.value = self.replay.first
-                elif v == "Last" and self.replay:
-                    self.playing = False
-                    self.g_slider.value = self.replay.last
+    def _playback(self, v: str) -> None:
+        if v == "Play":
+            self.playing = True
+        elif v == "Pause":
+            self.playing = False
+        elif v in ("First", "Last") and self.replay:
+            self.playing = False
+            self.g_slider.value = self.replay.first if v == "First" else self.replay.last
 
-    def _gui_view(self) -> None:
-        """The camera: follow the flock (on until the user moves the camera), and reset the framing."""
-        gui = self.server.gui
-        self.f_view = gui.add_folder("View")
-        with self.f_view:
-            self.g_follow = gui.add_checkbox("Follow the flock", True,
-                                             hint="keep the camera on the flock (moving the camera stops it)")
-            b_reset = gui.add_button("Reset view", hint="frame the flock and the target, and follow them again")
-            self.g_follow.on_update(lambda _e: self._set_follow(bool(self.g_follow.value)))
-            b_reset.on_click(lambda _e: self.reset_view())
-
-    def _gui_inspect(self) -> None:
-        """The selected sensor (also set by clicking it in the scene), its covariance ellipse and its text."""
-        gui = self.server.gui
-        ids = [str(i) for i in range(self.info.n)] or ["0"]
-        self.f_inspect = gui.add_folder("Inspect")
-        with self.f_inspect:
-            self.g_node = gui.add_dropdown("Sensor", ids, initial_value=ids[0])
-            self.g_ellipse = gui.add_checkbox("Covariance ellipse", True)
-            self.g_nsig = gui.add_slider("Ellipse n·σ", 1.0, 50.0, 1.0, 2.0, hint="size of the ellipse in σ")
-            self.g_nsig.on_update(lambda _e: setattr(self, "dirty", True))
-            self.g_inspect = gui.add_markdown("")
-
-            @self.g_node.on_update
-            def _(event) -> None:
-                try:
-                    i = int(self.g_node.value)
-                except ValueError:
-                    return
-                with self._lock:
-                    self.selected = i
-                    self.dirty = True
-                    self._last_plot_k = None
-                self._retarget(event.client_id, i)   # that tab's own operator fields, nobody else's
-
-    def _gui_display(self) -> None:
-        """Folded: what the scene shows (links, range circles, estimates, trail) and the error colour scale."""
-        gui = self.server.gui
-        self.f_display = gui.add_folder("Display", expand_by_default=False)
-        with self.f_display:
-            self.g_links = gui.add_checkbox("Links", True)
-            self.g_circles = gui.add_checkbox("Range circles", self.info.n <= 40)
-            self.g_estimates = gui.add_checkbox("Node estimates", True)
-            self.g_trail = gui.add_checkbox("Target trail", True)
-            self.g_err_scale = gui.add_number("Error colour scale (0 = auto)", 0.0, min=0.0, step=0.1)
-            for h in (self.g_links, self.g_circles, self.g_estimates, self.g_trail, self.g_err_scale):
-                h.on_update(lambda _e: setattr(self, "dirty", True))
-            gui.add_markdown("colour: own error, green (low) → red (≥ scale); grey = dead  \n"
-                             "● sensor  ◆ its estimate  red ball = target (trail)  purple = fusion  \n"
-                             "orange = selected sensor's links, blue = its covariance ellipse")
+    def _gui_legend(self) -> None:
+        self.server.gui.add_markdown("colour: own error, green (low) → red (≥ scale); grey = dead  \n"
+                                     "● sensor  ◆ its estimate  red ball = target (trail)  purple = fusion  \n"
+                                     "orange = selected sensor's links, blue = its covariance ellipse",
+                                     order=self.layout["legend"])
 
     def _gui_plots_panel(self) -> None:
         """The plots, in their own panel docked left (the uPlot panels are added by :meth:`render_plots`)."""
@@ -781,6 +754,11 @@ class DashboardUI:
         panel.set_width(460)
         with self.plot_tab:
             gui.add_markdown("live series (uPlot; drag to zoom, double-click to reset)", order=1)
+
+    def stats(self) -> dict:
+        """The tabs' counters for the stats file: operators / viewers / wrong tokens / refused controls and
+        the guard's (dashboards/guard.py), totals and per tab."""
+        return {**self.operators.counters, "guard": self.guard.stats()}
 
     def attach_replay(self, model: ReplayModel) -> None:
         """The recording is loaded (the page is served meanwhile): set the slider to its ticks."""
@@ -804,6 +782,7 @@ class DashboardUI:
         return [int(v) for v in g]
 
     def stop(self) -> None:
+        self.guard.uninstall()
         if self.tls_front is not None:
             self.tls_front.close()
         try:
@@ -891,9 +870,10 @@ class LiveDashboard:
 def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "127.0.0.1",
              config_file: str | None = None, exit_on_end: bool = False, stop_event: threading.Event | None = None,
              token: str = "dashboard/0", operator_token: str | None = None,
-             tls: tuple[str, str] | None = None) -> int:
+             tls: tuple[str, str] | None = None, limits: Limits | None = None) -> int:
     """``token``: this process's liveliness token; ``operator_token``: the run's operator token (None: a
-    read-only page for everyone, see dashboards/operator.py)."""
+    read-only page for everyone, see dashboards/operator.py); ``limits``: what a tab may send
+    (dashboards/guard.py)."""
     from agent.bus import ZenohBus
     from agent.runner import quick_gil_handoff, write_stats
 
@@ -906,7 +886,8 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
     state = DashboardState(info)
     loop = LiveDashboard(state, None, bus)
     ui = DashboardUI(info, port=port, host=host, live=True, send_control=loop.send_control,
-                     operator_token=operator_token, tls=tls)
+                     operator_token=operator_token, tls=tls, limits=limits)
+    cpu0, wall0 = time.process_time(), time.monotonic()
     loop.ui = ui
     log.info("dashboard for run %s on %s://%s:%d (%s)", run, ui.scheme, host, ui.port,
              "controls for the operator link" if operator_token else "read-only for everyone")
@@ -924,7 +905,10 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
         log.info("dashboard model: %d ticks scored, %d leading partial ticks skipped, %d ticks never heard of, "
                  "%d late messages, %d missing estimates/states, %d invalid messages", len(state.series_buf),
                  state.partial_start, state.gap_ticks, state.late, state.missing_total, state.bus_dropped)
-        write_stats(token, bus, ui.operators)   # (bus counters, and the tabs: operators, viewers, wrong tokens)
+        # the bus's counters, the tabs' (operators, viewers, wrong tokens, the guard's per tab) and this
+        # process's CPU (bench/bench_dashboard.py reads it)
+        write_stats(token, bus, SimpleNamespace(counters={**ui.stats(), "cpu_s": time.process_time() - cpu0,
+                                                          "wall_s": time.monotonic() - wall0}))
         bus.close()
         ui.stop()
     return 0

@@ -106,12 +106,21 @@ class Operators:
 
 def build_panel(gui, client_id: int | None, ui, orders: dict[str, float]) -> OperatorPanel:
     """The operator widgets on ``gui`` (a tab's own, or the server's in tests): run control at
-    ``orders["run"]``, faults at ``orders["faults"]`` and the plan-fault form at ``orders["plan"]``."""
-    p = OperatorPanel(client_id=client_id)
-    ctl = _checked(ui, client_id)
-    _run_control(gui, p, ui, ctl, orders["run"])
-    _faults(gui, p, ui, ctl, orders["faults"])
-    _plan_fault(gui, p, ui, ctl, orders["plan"])
+    ``orders["run"]``, faults at ``orders["faults"]``, the plan-fault form at ``orders["plan"]`` and the
+    shared display at ``orders["display"]``. Every initial value is clamped into its widget's range,
+    whatever the shared state holds; if a widget still fails, the folders built so far are removed and the
+    error raised (the caller tells the tab: never a half-built operator)."""
+    p = OperatorPanel(client_id=client_id, folders=[])
+    ctl = ui.guard.safe(_checked(ui, client_id), "control")
+    try:
+        _run_control(gui, p, ui, ctl, orders["run"])
+        _faults(gui, p, ui, ctl, orders["faults"])
+        _plan_fault(gui, p, ui, ctl, orders["plan"])
+        p.display = _display(gui, p, ui, orders["display"])
+    except Exception:
+        for folder in p.folders:
+            folder.remove()
+        raise
     return p
 
 
@@ -122,9 +131,25 @@ def _checked(ui, client_id: int | None) -> Callable[..., None]:
     return control
 
 
+def _folder(gui, p: OperatorPanel, *args, **kwargs):
+    """A folder of the panel's (removed with the rest if the panel fails to build)."""
+    f = gui.add_folder(*args, **kwargs)
+    p.folders.append(f)
+    return f
+
+
+def _display(gui, p: OperatorPanel, ui, order: float) -> dict:
+    """The shared display's settings (dashboards/tabs.py build_display): an operator's to change."""
+    from .tabs import build_display
+
+    folder, widgets = build_display(gui, ui, order)
+    p.folders.append(folder)
+    return widgets
+
+
 def _run_control(gui, p: OperatorPanel, ui, control, order: float) -> None:
     """Pause / resume / step n ticks, and the realtime factor (control/pause, resume, step, speed)."""
-    with gui.add_folder("Run control", order=order):
+    with _folder(gui, p, "Run control", order=order):
         gui.add_markdown("**operator**: this tab steers the run")
         bg = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
         p.g_step_n = gui.add_number("Step ticks", 1, min=1, max=10_000, step=1)
@@ -148,10 +173,12 @@ def _run_control(gui, p: OperatorPanel, ui, control, order: float) -> None:
 def _faults(gui, p: OperatorPanel, ui, control, order: float) -> None:
     """Kill / restart a sensor, drop / heal a link, link loss, partition / heal the flock, and an outlier
     burst (control/kill, restart, link_drop, link_heal, link_loss, partition, heal, outlier_burst)."""
+    from .tabs import clamp_index
+
     n = ui.info.n
     top = max(n - 1, 0)
-    sel = ui.selected if ui.selected is not None else 0
-    with gui.add_folder("Faults (control/**)", order=order):
+    sel = clamp_index(ui.selected, n)
+    with _folder(gui, p, "Faults (control/**)", order=order):
         p.g_kill_id = gui.add_number("Sensor id", sel, min=0, max=top, step=1)
         kb = gui.add_button_group("Process", ("Kill sensor", "Restart sensor"))
         p.g_link_a = gui.add_number("Link a", sel, min=0, max=top, step=1)
@@ -181,7 +208,7 @@ def _plan_fault(gui, p: OperatorPanel, ui, control, order: float) -> None:
     fault by its id (control/heal_fault)."""
     from agent.scenario import FAULT_KINDS
 
-    with gui.add_folder("Plan fault (control/inject)", expand_by_default=False, order=order):
+    with _folder(gui, p, "Plan fault (control/inject)", expand_by_default=False, order=order):
         p.g_inj_kind = gui.add_dropdown("Kind", FAULT_KINDS, initial_value="delay")
         p.g_inj_targets = gui.add_text("Targets", "agents:0")
         p.g_inj_params = gui.add_text("Parameters", "delay_ms=80 jitter_ms=20 direction=in")

@@ -155,21 +155,42 @@ def scene_arrays(snap: Snapshot, *, selected: int | None = None, error_scale: fl
                       links=link_segments(pos, snap.edges), circles=circles, trail=polyline_segments(snap.trail),
                       target=snap.truth_pos, fusion=snap.fusion_pos)
     if selected is not None and 0 <= selected < snap.n:
-        out.selected = selected
-        if known[selected]:
-            out.selected_pos = pos[selected]
-            nb = [j for j in snap.neighbours[selected] if known[j]] if selected < len(snap.neighbours) else []
-            if nb:
-                out.selected_links = link_segments(pos, np.array([[selected, j] for j in nb]))
-        if est_ok[selected]:
-            out.selected_est = snap.est_pos[selected]
-        P = snap.cov_pos.get(selected)
-        xn = snap.est_next.get(selected)
-        if P is not None and xn is not None and P.shape[0] >= 2:
-            d = P.shape[0]
-            mean = np.zeros(3)
-            mean[:min(3, d)] = xn[:min(3, d)]
-            out.ellipse = polyline_segments(ellipse_points(mean, P, nsig))
+        sel = selection_arrays(snap, selected, nsig=nsig)
+        out.selected, out.selected_pos, out.selected_est = selected, sel.pos, sel.est
+        out.selected_links, out.ellipse = sel.links, sel.ellipse
+    return out
+
+
+@dataclass
+class Selection:
+    """What the scene draws of one selected sensor (a tab's own inspector, dashboards/tabs.py)."""
+
+    pos: np.ndarray | None = None      #: (3,) the sensor, None: position unknown
+    est: np.ndarray | None = None      #: (3,) its estimate of the target position
+    links: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.float32))
+    ellipse: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.float32))
+
+
+def selection_arrays(snap: Snapshot, selected: int, nsig: float = 2.0) -> Selection:
+    """Sensor ``selected``'s links, estimate and nsig·σ covariance ellipse (empty out of range)."""
+    out = Selection()
+    if not 0 <= selected < snap.n:
+        return out
+    pos = snap.positions
+    known = np.all(np.isfinite(pos), axis=1)
+    if known[selected]:
+        out.pos = pos[selected]
+        nb = [j for j in snap.neighbours[selected] if known[j]] if selected < len(snap.neighbours) else []
+        if nb:
+            out.links = link_segments(pos, np.array([[selected, j] for j in nb]))
+    if np.all(np.isfinite(snap.est_pos[selected])):
+        out.est = snap.est_pos[selected]
+    P, xn = snap.cov_pos.get(selected), snap.est_next.get(selected)
+    if P is not None and xn is not None and P.shape[0] >= 2:
+        d = P.shape[0]
+        mean = np.zeros(3)
+        mean[:min(3, d)] = xn[:min(3, d)]
+        out.ellipse = polyline_segments(ellipse_points(mean, P, nsig))
     return out
 
 

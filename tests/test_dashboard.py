@@ -560,8 +560,8 @@ def test_viser_ui_renders_and_buttons_queue_controls():
         ui.render_plots(st.series())
         assert set(ui.h_plots) == {"errors", "tmsee", "disagreement", "lambda2", "rates"}
         ui.render_status(st.summary())
-        ui.select(4)           # (not a tab's click: the inspector moves, no operator's fields — see
-        assert ui.g_node.value == "4" and op.g_kill_id.value == 0   # tests/test_dashboard_auth.py)
+        ui.select(4)           # (not a tab's choice: the shared highlight moves, no operator's fields —
+        assert ui.selected == 4 and op.g_kill_id.value == 0   # see tests/test_dashboard_auth.py)
         ui.control("kill", agent=4)
         groups = ui.partition_groups()
         assert sorted(groups) == [0] * 6 + [1] * 6
