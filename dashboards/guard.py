@@ -170,6 +170,7 @@ class TabGuard:
         ws.on_client_disconnect(self._on_disconnect)
         self._filter = _FrameFilter(self)
         logging.getLogger("websockets.server").addFilter(self._filter)
+        quiet_viser_warnings()
 
     def uninstall(self) -> None:
         if self._filter is not None:
@@ -387,6 +388,16 @@ class TabGuard:
         out["tabs_gone_with_trouble"] = dict(self.gone)
         out["max_tabs"] = self.limits.max_tabs
         return out
+
+
+def quiet_viser_warnings() -> None:
+    """Viser warns with the offending value when a field of a tab's message does not match its annotation
+    (each distinct payload a new warning, printed), and when a message is queued for a tab that has just
+    gone: neither is the operator's business, and the first echoes what a hostile tab sent."""
+    import warnings
+
+    warnings.filterwarnings("ignore", category=UserWarning, module=r"viser\.infra\._messages")
+    warnings.filterwarnings("ignore", message=r"Queued a \w+ on a closed connection", category=UserWarning)
 
 
 class _FrameFilter(logging.Filter):

@@ -20,7 +20,9 @@ from __future__ import annotations
 import hmac
 import logging
 import os
+import math
 import secrets
+import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
@@ -79,6 +81,7 @@ class Operators:
         #: refused_controls (control callbacks from tabs that are not operators: there should be none);
         #: the dashboard's stats file (stats/dashboard_0.json) carries them
         self.counters: Counter = Counter()
+        self._warned = -math.inf
 
     @property
     def refused(self) -> int:
@@ -93,7 +96,11 @@ class Operators:
             self.counters["operator_tabs"] += 1
             return True
         self.counters["wrong_tokens"] += 1
-        log.warning("a tab came with a wrong operator token: read-only (%d so far)", self.counters["wrong_tokens"])
+        now = time.monotonic()
+        if now - self._warned >= 10.0:           # (a script reconnecting is a new tab each time)
+            self._warned = now
+            log.warning("a tab came with a wrong operator token: read-only (%d so far)",
+                        self.counters["wrong_tokens"])
         return False
 
     def allowed(self, client_id: int | None) -> bool:
@@ -151,7 +158,7 @@ def _run_control(gui, p: OperatorPanel, ui, control, order: float) -> None:
     """Pause / resume / step n ticks, and the realtime factor (control/pause, resume, step, speed)."""
     with _folder(gui, p, "Run control", order=order):
         gui.add_markdown("**operator**: this tab steers the run")
-        bg = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
+        p.b_run = bg = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
         p.g_step_n = gui.add_number("Step ticks", 1, min=1, max=10_000, step=1)
         p.g_speed = gui.add_slider("Speed ×", 0.05, 4.0, 0.05, min(4.0, max(0.05, round(ui.info.speed, 2))),
                                    hint="realtime factor (control/speed)")

@@ -7,62 +7,17 @@ tests/test_dashboard_browser.py; the launcher's token file and printed link are 
 import os
 import stat
 import time
-from contextlib import contextmanager
 
-import msgspec
 import pytest
 
+from dashboard_clients import connect as _connect
+from dashboard_clients import operator_ui as _operator_ui
+from dashboard_clients import press as _press
+from dashboard_clients import report_camera as _report_camera
+from dashboard_clients import wait as _wait
 from dashboards.operator import Operators, operator_url, write_token
 from dashboards.state import RunInfo
 from flocktrack.launch import free_port
-
-
-def _connect(port: int, path: str):
-    import viser
-    from websockets.sync.client import connect
-
-    ws = connect(f"ws://127.0.0.1:{port}{path}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None,
-                 open_timeout=30)
-    _report_camera(ws)
-    return ws
-
-
-def _report_camera(ws) -> None:
-    """Viser counts a tab as connected once it reports its camera."""
-    ws.send(msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0],
-                                    "position": [0.0, -30.0, 20.0], "fov": 1.0, "near": 0.01, "far": 1000.0,
-                                    "image_height": 800, "image_width": 600, "look_at": [0.0, 0.0, 0.0],
-                                    "up_direction": [0.0, 0.0, 1.0]}))
-
-
-def _press(ws, uuid: str, value=True) -> None:
-    """What the page sends when a button is clicked (or, with ``value``, a field or dropdown changed)."""
-    ws.send(msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": value}}))
-
-
-@contextmanager
-def _operator_ui(n: int):
-    """A live DashboardUI with operator token "the-token", the controls it sends, and a list of websockets
-    that are closed (and the UI stopped) on the way out."""
-    from dashboards.live import DashboardUI
-
-    sent: list = []
-    ui = DashboardUI(RunInfo(n=n, link_range=12.0, name="auth"), port=free_port(), live=True,
-                     send_control=lambda v, a: sent.append((v, a)), operator_token="the-token")
-    socks: list = []
-    try:
-        yield ui, sent, socks
-    finally:
-        for ws in socks:
-            ws.close()
-        ui.stop()
-
-
-def _wait(cond, timeout_s: float = 20.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while not cond() and time.monotonic() < end:
-        time.sleep(0.05)
-    return cond()
 
 
 def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_them():
@@ -89,39 +44,44 @@ def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_th
         assert ui.operators.counters == {"viewer_tabs": 1, "wrong_tokens": 1, "operator_tabs": 1}
 
 
-def test_a_viewer_inspecting_another_sensor_does_not_retarget_the_operators_controls():
-    """The inspector's "Sensor" dropdown is on the shared GUI (every tab sees the selection); only the
-    operator's own choice there, or its own click in the scene, moves its "Sensor id" and "Link a" — a
-    viewer's never does, so a viewer cannot make the operator's next Kill hit another sensor."""
+def test_a_viewer_inspecting_another_sensor_changes_only_its_own_tab():
+    """Each tab has its own inspector (its own "Sensor" dropdown, overlays and text): a viewer inspecting
+    sensor 3 changes its own tab — not the operator's fields, not the sensor the shared page highlights —
+    and it cannot write the operator's widgets nor anyone else's; only the operator's own choice there, or
+    its own click in the scene, moves its "Sensor id" and "Link a" (so a viewer cannot make the operator's
+    next Kill hit another sensor)."""
     with _operator_ui(6) as (ui, sent, socks):
         viewer = _connect(ui.port, "/")
         op = _connect(ui.port, "/operator/the-token")
         socks += [viewer, op]
-        assert _wait(lambda: len(ui.operators.panels) == 1 and len(ui.server.get_clients()) == 2)
+        assert _wait(lambda: len(ui.operators.panels) == 1 and len(ui.tabs) == 2)
         (op_id, panel), = ui.operators.panels.items()
-        viewer_id = next(c for c in ui.server.get_clients() if c != op_id)
+        viewer_id = next(c for c in ui.tabs if c != op_id)
 
         def fields() -> tuple[int, int]:
             return panel.g_kill_id.value, panel.g_link_a.value
 
         assert fields() == (0, 0)
-        _press(viewer, ui.g_node._impl.uuid, "3")                      # the viewer inspects sensor 3 ...
-        assert _wait(lambda: ui.selected == 3 and ui.g_node.value == "3")
+        _press(viewer, ui.tabs[viewer_id].widgets["node"]._impl.uuid, "3")     # the viewer inspects sensor 3
+        assert _wait(lambda: ui.tabs[viewer_id].selected == 3)
         time.sleep(1.0)
-        assert fields() == (0, 0)                                      # ... the operator's fields stay
+        assert fields() == (0, 0) and ui.selected == 0 and ui.tabs[op_id].selected == 0   # its own tab only
         ui.select(4, viewer_id)                                        # (a viewer's click in its scene)
-        assert ui.selected == 4 and fields() == (0, 0)
-        _press(viewer, panel.g_kill_id._impl.uuid, 5)                  # nor can it write them itself
-        time.sleep(1.0)
-        assert fields() == (0, 0)
-        _press(op, ui.g_node._impl.uuid, "2")                          # the operator's own choice moves them
+        assert ui.tabs[viewer_id].selected == 4 and fields() == (0, 0) and ui.selected == 0
+        refused = ui.guard.tabs[viewer_id].counters["invalid_updates"]
+        _press(viewer, panel.g_kill_id._impl.uuid, 5)                  # nor can it write the operator's fields
+        _press(viewer, ui.tabs[op_id].widgets["node"]._impl.uuid, "5")  # or the operator's inspector
+        assert _wait(lambda: ui.guard.tabs[viewer_id].counters["invalid_updates"] == refused + 2)
+        assert fields() == (0, 0) and ui.tabs[op_id].selected == 0
+        _press(op, ui.tabs[op_id].widgets["node"]._impl.uuid, "2")     # the operator's own choice moves them
         assert _wait(lambda: fields() == (2, 2)), fields()
+        assert ui.selected == 2                                        # ... and the shared highlight
         ui.select(5, op_id)                                            # and so does its click in the scene
         assert fields() == (5, 5)
-        _press(viewer, ui.g_node._impl.uuid, "1")                      # a viewer's choice after it: still not
-        assert _wait(lambda: ui.g_node.value == "1")
+        _press(viewer, ui.tabs[viewer_id].widgets["node"]._impl.uuid, "1")  # a viewer's choice after it: not
+        assert _wait(lambda: ui.tabs[viewer_id].selected == 1)
         time.sleep(1.0)
-        assert fields() == (5, 5) and sent == []
+        assert fields() == (5, 5) and ui.selected == 5 and sent == []
 
 
 def test_a_replay_or_tokenless_page_has_no_operator():
