@@ -24,7 +24,7 @@ WORKDIR /app
 COPY pyproject.toml README.md LICENSE ./
 RUN python3 -m venv /opt/flocktrack \
  && for p in agent topology dashboards flocktrack; do mkdir -p "$p" && touch "$p/__init__.py"; done \
- && pip install . \
+ && pip install '.[fusion]' \
  && pip uninstall -y flocktrack \
  && rm -rf agent topology dashboards flocktrack build ./*.egg-info
 

@@ -7,13 +7,13 @@ no CSV, no scenario parsing (that is :mod:`flocktrack.experiment`'s job).
 * :func:`metric_vs_param` — a scalar metric against a grid key (e.g. RMSE vs fault intensity): the mean
   over seeds with a bootstrap 95 % confidence band, every seed as a faint dot, one line per value of the
   other keys (a categorical key gets error bars instead of a band);
-* :func:`mean_ci` — the bootstrap confidence interval both use (also used for the sweep's summary CSV).
+* :func:`mean_ci` — the bootstrap confidence interval both use (:mod:`dashboards.confidence`, also the sweep's summary CSV's).
 
 The y axis turns logarithmic by itself when the values span more than ~1.3 decades (a diverging Kalman
 filter next to a bounded minimax one). Drawing uses the object API (``Figure`` + Agg canvas), so nothing
 here touches pyplot's global state or the process's matplotlib backend.
 
-Floors: imports numpy and matplotlib only.
+Floors: imports numpy, matplotlib and (for the bootstrap) SciPy only.
 """
 
 from __future__ import annotations
@@ -26,30 +26,14 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from .confidence import mean_ci
+
 #: values spanning more than this ratio (max / 5th percentile of the positive values, ≈ 1.3 decades) get a
 #: log y axis
 LOG_RATIO = 20.0
 
 
 # --------------------------------------------------------------------------- statistics
-
-def mean_ci(values: Sequence[float], level: float = 0.95, n_boot: int = 2000, seed: int = 0) -> tuple[float, float, float]:
-    """(mean, lo, hi): the mean of the finite values and its percentile-bootstrap confidence interval.
-
-    Deterministic (a fixed generator seed). One value gives lo = hi = mean; none gives NaNs."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return (float("nan"),) * 3
-    m = float(v.mean())
-    if v.size == 1 or np.all(v == v[0]):
-        return m, m, m
-    rng = np.random.default_rng(seed)
-    means = v[rng.integers(0, v.size, size=(n_boot, v.size))].mean(axis=1)
-    a = (1.0 - level) / 2.0
-    lo, hi = np.quantile(means, [a, 1.0 - a])
-    return m, float(lo), float(hi)
-
 
 def wants_log(values) -> bool:
     """True when the finite positive values span more than :data:`LOG_RATIO` (max over the 5th percentile)."""

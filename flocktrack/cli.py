@@ -57,6 +57,9 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         import re
 
+        if message.startswith("argument scenario:"):   # the message lists the names: no usage block above it
+            self.exit(2, f"{self.prog}: error: {message}\n")
+
         from agent.suggest import did_you_mean
 
         m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
@@ -288,6 +291,8 @@ def cmd_design(args) -> int:
     sc = load_scenario(args.scenario, args.set or [])
     try:
         d = make_design(sc)
+    except ImportError:       # an optional dependency (cvxpy for an SDP): main() names the extra
+        raise
     except Exception as exc:  # DesignError (infeasible / inaccurate) and friends: say which, no numbers
         print(f"error: {args.scenario}: design failed: {exc}", file=sys.stderr)
         return 1
@@ -449,6 +454,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except MissingDataError as exc:   # a broken install: say what is missing and how to mend it
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ImportError as exc:        # an optional dependency that is not installed: which extra brings it
+        from .extras import missing_extra
+
+        line = missing_extra(exc)
+        if line is None:
+            raise
+        print(f"error: {args.cmd}: {line}", file=sys.stderr)
         return 2
 
 

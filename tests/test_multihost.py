@@ -17,7 +17,7 @@ from agent.scenario import parse_scenario
 from agent.scenario import scenario_data
 from flocktrack.record import read_recording
 from flocktrack.run import run_inproc_to_dir
-from flocktrack.secure import MESH_DIR, mesh_configs
+from flocktrack.secure import mesh_configs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import netns
@@ -25,6 +25,7 @@ from provision import network_namespaces, require
 
 ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "scenarios"
+MESH_DIR = ROOT / "broker_cfg" / "mesh"
 HOSTS = ("a", "b", "c")
 # gu_hu_normal has 10 sensors: host a runs the world, the target, the recorder and sensors 0-3,
 # host b sensors 4-6, host c sensors 7-9

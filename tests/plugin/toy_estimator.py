@@ -8,7 +8,9 @@ and then pulls toward its neighbours' corrected estimates (one consensus round p
     x̂ᵢ ← A x̂ᵢ                                (prediction for the next tick)
 
 It is not from the papers and not a good filter; it is short. Placed in ``agent/estimators/`` the module
-would be found by the registry as it is; kept here, tests add it with ``registry.register(SPEC)``.
+would be found by the registry as it is; kept here, it is a plug-in package of its own (``pyproject.toml``
+beside it declares the ``flocktrack.estimators`` entry point), and tests that do not install it add it
+with ``registry.register(SPEC)``.
 """
 
 from __future__ import annotations

@@ -1,0 +1,33 @@
+"""Optional dependencies: which extra of the package brings which module, and the line that says so.
+
+The main job needs none of them. ``pip install 'flocktrack[design]'`` brings cvxpy with its solvers (the
+SDP design of the min-energy H∞ filters, the sum-of-norms reference solver), ``flocktrack[figures]``
+matplotlib (the sweeps' PNGs, the dashboard's static picture), ``flocktrack[fusion]`` numba (the
+compiled kernels of the sum-of-norms fusion: the ``carrillo_*`` scenarios), ``flocktrack[all]`` all three.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+#: top-level module → the extra that installs it
+EXTRA_OF = {"cvxpy": "design", "clarabel": "design", "scs": "design", "matplotlib": "figures", "numba": "fusion",
+            "llvmlite": "fusion"}
+
+
+def install_line(extra: str) -> str:
+    return f"pip install 'flocktrack[{extra}]'"
+
+
+def missing_extra(exc: BaseException) -> str | None:
+    """The one line for an ImportError of a module that an extra brings, else None (a real bug)."""
+    name = (getattr(exc, "name", None) or "").split(".")[0]
+    extra = EXTRA_OF.get(name)
+    if not isinstance(exc, ImportError) or extra is None:
+        return None
+    return f"this needs {name}, an optional dependency of flocktrack; install it with: {install_line(extra)}"
+
+
+def has(module: str) -> bool:
+    """Whether ``module`` can be imported (without importing it)."""
+    return importlib.util.find_spec(module) is not None
