@@ -16,6 +16,16 @@ tick: per tick 1 tick + 1 truth + 100 × (1 meas + 3 xchg + 1 estimate + 1 state
 
     python bench/bench_dashboard.py [--n 100] [--hz 10] [--seconds 30] [--no-browser]
         → bench/results/dashboard.json
+
+3. **viewers** (``--viewers``): the README's main job (``flocktrack run scenarios/demo.toml --dashboard``,
+   realtime at speed 1.0, 1000 ticks) with 0, 1 and 5 connected tabs that read every frame but do not
+   render, and with 5 tabs that also send (each, per second, 10 valid updates of its own widgets and 10
+   invalid ones: out of range, wrong type, 10 kB strings, other tabs' and unknown widget ids, and a camera
+   report): the flock's missed round deadlines (run.json) and the dashboard's CPU (its stats file) for each.
+   The tabs run in a process of their own at nice 19 — they stand for browsers, usually on other machines;
+   what they cost the flock here is the machine's, not the dashboard's.
+
+    python bench/bench_dashboard.py --viewers [--ticks 1000] → bench/results/dashboard_viewers.json
 """
 
 from __future__ import annotations
@@ -273,10 +283,109 @@ def bench_paced(n: int, hz: float, seconds: float, rounds: int, use_browser: boo
             "publisher": published.get("done"), "samples": samples}
 
 
+# ============================================================================ 3. viewers of the main job
+
+VIEWER_CASES = (("no tab", 0, False), ("1 reading tab", 1, False), ("5 reading tabs", 5, False),
+                ("5 tabs sending valid and invalid updates", 5, True))
+
+
+def tabs_process(port: int, n: int, send: bool) -> int:
+    """(child process, nice 19) ``n`` tabs on the dashboard at ``port`` until it closes; with ``send`` each
+    sends 10 valid and 10 invalid updates a second."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from dashboard_clients import Tab
+
+    os.nice(19)
+    end = time.monotonic() + 120
+    while time.monotonic() < end:
+        try:
+            tabs = [Tab(port) for _ in range(n)]
+            break
+        except OSError:
+            time.sleep(0.2)
+    else:
+        return 1
+    print("CONNECTED", flush=True)
+    i = 0
+    while not any(t.closed.is_set() for t in tabs):
+        time.sleep(0.1)
+        if send:
+            i += 1
+            for t in tabs:
+                _send_updates(t, i)
+    return 0
+
+
+def _send_updates(tab, i: int) -> None:
+    """One tenth of a second of a sending tab: a valid update of its own n·σ slider, and an invalid one."""
+    nsig = tab.find("GuiSliderMessage", label="Ellipse n·σ")
+    if nsig is not None:
+        tab.press(nsig, float(1 + i % 5))
+    bad = [(nsig, 10**18), (nsig, "two"), (nsig, "x" * 10_000), ("no-such-widget", True)]
+    if tab.uuids:
+        bad.append((tab.uuids[i % len(tab.uuids)], float("nan")))
+    uuid, value = bad[i % len(bad)]
+    if uuid is not None:
+        tab.press(uuid, value)
+
+
+def bench_viewers(ticks: int, out_root: Path) -> list[dict]:
+    from flocktrack.launch import free_port
+
+    rows = []
+    for name, n, send in VIEWER_CASES:
+        port, out = free_port(), out_root / name.replace(" ", "_")
+        run = subprocess.Popen([sys.executable, "-m", "flocktrack", "run", "scenarios/demo.toml", "--dashboard",
+                                "--dashboard-port", str(port), "--no-linger", "--ticks", str(ticks), "--out",
+                                str(out)], cwd=str(ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        tabs = subprocess.Popen([sys.executable, __file__, "--tabs", str(port), str(n), str(int(send))],
+                                stdout=subprocess.PIPE, text=True) if n else None
+        rc = run.wait(900)
+        if tabs is not None:
+            connected = tabs.stdout.readline().strip() == "CONNECTED"
+            tabs.wait(30)
+        info = json.loads((out / "run.json").read_text())
+        dash = json.loads((out / "stats" / "dashboard_0.json").read_text()).get("role", {})
+        guard = dash.get("guard", {})
+        rows.append({"case": name, "tabs": n, "sending": send, "exit_code": rc,
+                     "tabs_connected": bool(n) and connected, "missed_deadlines": info.get("missed_deadlines"),
+                     "ticks_per_s": info.get("ticks_per_s"), "dashboard_cpu_s": dash.get("cpu_s"),
+                     "dashboard_wall_s": dash.get("wall_s"),
+                     "dashboard_cpu_share": (dash["cpu_s"] / dash["wall_s"]) if dash.get("wall_s") else None,
+                     "tabs_seen": guard.get("tabs_seen"), "updates_refused": guard.get("total_invalid_updates", 0),
+                     "throttled": guard.get("total_throttled", 0), "closed_for_rate": guard.get("closed_for_rate", 0),
+                     "dashboard_log_bytes": (out / "logs" / "dashboard.log").stat().st_size})
+        print(rows[-1], flush=True)
+    return rows
+
+
+def machine_note() -> dict:
+    """The machine and what else ran on it (the busiest processes at the start)."""
+    top = subprocess.run(["ps", "-eo", "pcpu,comm", "--sort=-pcpu"], capture_output=True, text=True).stdout
+    return {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+            "loadavg_at_start": os.getloadavg(), "busiest_processes_at_start": top.splitlines()[1:8]}
+
+
+def main_viewers(ticks: int, out: Path) -> int:
+    import tempfile
+
+    res = {"machine": machine_note(), "scenario": "scenarios/demo.toml (12 sensors, T = 0.04 s, realtime, speed 1.0)",
+           "ticks": ticks}
+    with tempfile.TemporaryDirectory() as d:
+        res["cases"] = bench_viewers(ticks, Path(d))
+    res["machine"]["loadavg_at_end"] = os.getloadavg()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--publisher":
         run, port, n, hz, seconds, rounds = sys.argv[2:8]
         return publisher(run, int(port), int(n), float(hz), float(seconds), int(rounds))
+    if len(sys.argv) > 1 and sys.argv[1] == "--tabs":
+        return tabs_process(int(sys.argv[2]), int(sys.argv[3]), bool(int(sys.argv[4])))
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=100)
     ap.add_argument("--hz", type=float, default=10.0)
@@ -284,8 +393,14 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--ticks", type=int, default=200, help="pipeline benchmark ticks")
     ap.add_argument("--no-browser", action="store_true")
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "dashboard.json"))
+    ap.add_argument("--out", default=None, help="default: bench/results/dashboard.json "
+                                                "(--viewers: dashboard_viewers.json)")
+    ap.add_argument("--viewers", action="store_true", help="the main job with 0, 1 and 5 tabs (see above)")
+    ap.add_argument("--demo-ticks", type=int, default=1000, help="--viewers: ticks of each run")
     args = ap.parse_args()
+    if args.viewers:
+        return main_viewers(args.demo_ticks, Path(args.out or ROOT / "bench" / "results" / "dashboard_viewers.json"))
+    args.out = args.out or str(ROOT / "bench" / "results" / "dashboard.json")
     load0 = os.getloadavg()
     res = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
                        "loadavg_at_start": load0},

@@ -402,14 +402,22 @@ def quiet_viser_warnings() -> None:
 
 class _FrameFilter(logging.Filter):
     """On ``websockets.server``: the traceback of a tab's connection whose handler failed (a frame Viser
-    could not decode) becomes one rate-limited line of the guard's; other records pass."""
+    could not decode), or of a connection that never spoke HTTP, becomes one rate-limited line of the
+    guard's; other records pass."""
 
     def __init__(self, guard: TabGuard):
         super().__init__()
         self.guard = guard
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.getMessage() != "connection handler failed":
+        msg = record.getMessage()
+        if msg == "opening handshake failed":   # not HTTP at all (a port probe, a scanner): one counted line
+            self.guard.counters["failed_handshakes"] += 1
+            exc = record.exc_info[1] if record.exc_info else None
+            self.guard._log_global("handshake", "a connection failed its opening handshake (%s; %d so far)",
+                                   type(exc).__name__ if exc else "error", self.guard.counters["failed_handshakes"])
+            return False
+        if msg != "connection handler failed":
             return True
         conn = getattr(record, "websocket", None)
         if self.guard.tab_of(conn) is None:

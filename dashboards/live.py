@@ -243,6 +243,7 @@ class DashboardUI:
         #: own inspector is in ``tabs`` (dashboards/tabs.py)
         self.selected: int | None = 0 if info.n else None
         self.tabs: dict[int, TabPanel] = {}
+        self.tabs_dirty = False           # a tab's own choice changed: redraw the tabs' parts (not the scene)
         self.display = DisplaySettings(circles=info.n <= 40)
         self.dirty = True                 # redraw even if the tick did not change
         self.timings = UiTimings()
@@ -339,6 +340,7 @@ class DashboardUI:
         panel = self.tabs.get(client_id) if client_id is not None else None
         if panel is not None:
             panel.selected, panel.drawn = i, None
+            self.tabs_dirty = True
             node = panel.widgets["node"]
             if node.value != str(i):
                 node.value = str(i)
@@ -423,8 +425,14 @@ class DashboardUI:
     #: zoomed in on (1.6 left it a third of the canvas it should fill)
     ZOOM_SLACK = 1.3
 
+    def refresh_tabs(self) -> None:
+        """Redraw what changed of the tabs' own parts since a tab's choice (between scene redraws)."""
+        if self.tabs_dirty and self._last_snapshot is not None:
+            self._render_tabs(self._last_snapshot)
+
     def _render_tabs(self, snap: Snapshot) -> None:
         """Each tab's own selection and inspector text (dashboards/tabs.py)."""
+        self.tabs_dirty = False
         for panel in tuple(self.tabs.values()):
             self.guard.safe(render_tab, "render_tab")(panel, snap, self)
 
@@ -856,6 +864,7 @@ class LiveDashboard:
             self._next_scene = now + self.scene_period
             self.ui.render_scene(st.snapshot(), st.series(last=200)["err"])
         else:
+            self.ui.refresh_tabs()    # a tab's own inspector, at once (also while paused)
             self.ui.update_view()     # the camera's glide goes on between ticks (and while paused)
         if now >= self._next_plot:
             self._next_plot = now + self.plot_period
@@ -950,6 +959,7 @@ def run_replay(path: str | Path, port: int, *, host: str = "127.0.0.1",
             last = now
             k = ui.replay_k
             if ui.render_scene(model.snapshot(k), model.series(k, last=200)["err"]) is None:
+                ui.refresh_tabs()
                 ui.update_view()
             if now - last_plot > (0.3 if ui.playing else 0.1):
                 last_plot = now

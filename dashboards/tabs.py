@@ -116,8 +116,12 @@ def build_tab(ui, client) -> TabPanel:
         w["nsig"] = gui.add_slider("Ellipse n·σ", 1.0, 50.0, 1.0, 2.0, hint="size of the ellipse in σ")
         w["text"] = client.gui.add_markdown("")
     w["node"].on_update(safe(lambda _e: ui.select(int(w["node"].value), cid), "inspect"))
+    def redraw(_e) -> None:
+        panel.drawn = None
+        ui.tabs_dirty = True
+
     for name in ("ellipse", "nsig"):
-        w[name].on_update(safe(lambda _e: setattr(panel, "drawn", None), name))
+        w[name].on_update(safe(redraw, name))
     _add_overlays(client.scene, panel, ui.marker_size)
     return panel
 
