@@ -9,7 +9,7 @@
   direction) for a configurable fraction of the measurements, and Gaussian GPS noise on the UAV's own
   position. Every draw comes from the caller's ``numpy.random.Generator``.
 
-Beyond the paper (issue 19), ``outlier_model`` selects how the outlier fraction f is realised:
+Beyond the paper, ``outlier_model`` selects how the outlier fraction f is realised:
 
 * ``"uniform"`` (the paper's): f·M measurements, their noise replaced by a U(40, 70) m vector in a
   uniformly random direction;

@@ -12,7 +12,7 @@ The prediction reads the run's recording: every message of those ticks, its msgp
 its publisher's host, and the hosts with a subscriber for its key (flocktrack/keys.py READS: the recorder,
 world, target and launcher on a; every sensor reads world/tick, world/end, world/event, target/truth and
 control/**), one copy per remote router (Zenoh routes a put once to each router with a matching
-subscription). Exchange payloads are addressed (issue 16): sensor i sends one copy per sensor j that hears
+subscription). Exchange payloads are addressed: sensor i sends one copy per sensor j that hears
 it by tick k's link table, on ``agent/i/to/j/xchg`` — a copy crosses only when j is on another host — and
 one observer copy ``agent/i/xchg`` to the recorder's host. ``broadcast`` is what the same run would send
 if every sensor still subscribed to ``agent/*/xchg`` (before addressing): one copy to every other host.

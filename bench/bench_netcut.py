@@ -7,7 +7,7 @@ switch), one Zenoh router each meshed by broker_cfg/mesh/, gu_hu_normal's 10 sen
 world, the target, the recorder and the launcher), b: 4–6, c: 7–9 — here in realtime. Host b's cable is
 pulled ``--trials`` times, each for ``--down`` s, ``--every`` s after the previous heal. Per trial, from
 host a's liveliness view: ``detect_s`` = cut → the last of b's sensors seen gone; ``recover_s`` = heal → the
-last of them seen back. Targets (issue 18): detection ≤ 2 s, recovery ≤ 1 s after the heal. Needs root and
+last of them seen back. Targets: detection ≤ 2 s, recovery ≤ 1 s after the heal. Needs root and
 iproute2. Writes the trials and their median / p95 / max.
 """
 

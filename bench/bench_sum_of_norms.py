@@ -17,7 +17,7 @@ alike) on the same built problem:
 Reported per solver: median and p99 (µs), the speed-up of cvxpy + Clarabel's median over it, and the
 objective agreement with the reference (max relative difference, floor 1).
 
-``robust_mhe`` (issue 19): the robust moving-horizon estimator's whole cost per fused measurement at
+``robust_mhe``: the robust moving-horizon estimator's whole cost per fused measurement at
 W = 15 — ``add`` (folding the node that leaves into the arrival cost, the MAD update) plus ``solve``
 (the Huber window with its arrival cost, and the re-solve when a gross outlier is in the window) —
 over a 10 % outlier stream, the robust Kalman filter's ``add`` beside it. Target: median ≤ 200 µs.

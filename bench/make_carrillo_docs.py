@@ -1,5 +1,5 @@
 """Reproduce García Carrillo et al.'s Table I and Fig. 4 (the λ/δ sweep), and compare the robust
-moving-horizon fusion (issue 19) with every baseline over three outlier models; write
+moving-horizon fusion with every baseline over three outlier models; write
 docs/carrillo_table1.md, docs/carrillo_table1.png and docs/carrillo_lambda_sweep.png.
 
     python bench/make_carrillo_docs.py [--seeds 10] [--quick]
@@ -44,7 +44,7 @@ PAPER_SCALE = 57.0  # the residual scale the paper's λ values imply (PAPER_NOTE
 MIN_Q_KALMAN = (0.3, 1.0, 3.0)
 MIN_Q_SON = 30.0
 MIN_DELTAS = (0.3, 1.0, 3.0)
-# issue 19: the robust comparison
+# beyond the paper: the robust comparison
 MODELS = ("uniform", "student_t", "burst")
 MODEL_TEXT = {"uniform": "the paper's outliers (40–70 m, uniform direction)",
               "student_t": "heavy-tailed Student-t noise on every measurement, ν such that P(‖n‖ > 40 m) = rate",
@@ -139,7 +139,7 @@ def pct(a, b):
 
 def write_markdown(path: Path, sc, pooled, pooled_min, deltas, seeds, lag, elapsed, robust=None):
     """docs/carrillo_table1.md: Table I at the paper's tuning, at minimum-error tuning, the δ sweep, the
-    robust comparison (issue 19) and the settings the paper leaves unstated."""
+    robust comparison and the settings the paper leaves unstated."""
     L = []
     _md_header(L.append, sc, seeds, lag, elapsed)
     _md_paper_tuning(L.append, sc, pooled)
@@ -317,7 +317,7 @@ def _md_robust(w, pooled, sigma, seeds):
     fr = PUBLISHED["fractions"]
     mk = f"mhe_q{MHE_Q:g}"
     rk = f"rkf_q{MHE_Q:g}"
-    w("## Beyond the paper: robust moving-horizon fusion (issue 19)")
+    w("## Beyond the paper: robust moving-horizon fusion")
     w("")
     w("The paper's window forgets; a Kalman filter remembers but is not robust. The **robust MHE** "
       "(`agent/estimators/robust_mhe.py`) is the sum-of-norms/Huber window (W = 15) with an arrival cost — "

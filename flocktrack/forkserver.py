@@ -1,7 +1,7 @@
 """The run's Python processes started from a pre-imported template instead of a fresh interpreter each.
 
 A sensor process spends ~0.4 s of CPU importing numpy, SciPy, Zenoh and the roles before it does anything;
-a flock of N pays it N times on the launcher's critical path (issue 16, start-up), and a restarted sensor
+a flock of N pays it N times on the launcher's critical path (start-up), and a restarted sensor
 pays it again before it can rejoin. The standard library's *forkserver* (``multiprocessing``) does what is
 needed: one server process imports :data:`PRELOAD` once; every child is a ``fork()`` of it — the imports
 already done, copy-on-write — that then runs ``python -m MODULE ARGS`` in-process (:func:`_child_main`,

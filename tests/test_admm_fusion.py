@@ -1,4 +1,4 @@
-"""Distributed robust moving-horizon fusion by consensus ADMM (issue 19 part 5, agent/estimators/admm_fusion.py):
+"""Distributed robust moving-horizon fusion by consensus ADMM (agent/estimators/admm_fusion.py):
 one node per UAV, each with only its own measurements, against the central RobustMHE on the same data; the
 nodes agree; a node that is down leaves the other estimating alone, and a restarted one takes the window
 over and agrees again."""

@@ -1,6 +1,6 @@
 """The fault plan ([faults] in a scenario; topology/faults.py): every kind injected in a real
 multi-process run over Zenoh with its effect and heal checked in the recording, plus the in-process
-claims of issue 6 (link loss, partition and re-merge, immunity to duplication and reordering)."""
+claims of the fault plan (link loss, partition and re-merge, immunity to duplication and reordering)."""
 
 import json
 from collections import defaultdict

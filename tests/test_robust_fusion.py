@@ -1,4 +1,4 @@
-"""Robust moving-horizon fusion (issue 19): the arrival cost against the cvxpy reference, the least-squares
+"""Robust moving-horizon fusion: the arrival cost against the cvxpy reference, the least-squares
 limit equal to the Kalman filter, the online threshold's scale, the robust Kalman filter, the outlier
 models, the fusion plug-in, and a small-seed version of the table's ordering."""
 

@@ -104,25 +104,14 @@ def edge_weights(adj: np.ndarray) -> list[list[float]]:
 
 def components(adj: np.ndarray) -> list[list[int]]:
     """Maximal connected components (Chen's "maximal connected branches"), each ascending,
-    ordered by their smallest node."""
-    nbrs = neighbour_lists(adj)
-    n = len(nbrs)
-    seen = [False] * n
-    out: list[list[int]] = []
-    for s in range(n):
-        if seen[s]:
-            continue
-        seen[s] = True
-        stack, comp = [s], []
-        while stack:
-            i = stack.pop()
-            comp.append(i)
-            for j in nbrs[i]:
-                if not seen[j]:
-                    seen[j] = True
-                    stack.append(j)
-        out.append(sorted(comp))
-    return out
+    ordered by their smallest node (:func:`scipy.sparse.csgraph.connected_components`)."""
+    from scipy.sparse.csgraph import connected_components
+
+    a = _as_adj(adj)
+    if a.shape[0] == 0:
+        return []
+    k, labels = connected_components(a > 0, directed=False)
+    return [np.flatnonzero(labels == c).tolist() for c in range(k)]   # labels follow the smallest node
 
 
 def is_connected(adj: np.ndarray) -> bool:

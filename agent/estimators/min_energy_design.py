@@ -1,7 +1,7 @@
 """Offline design of Zamani & Ugrinovskii's distributed H∞ minimum-energy filters: the SDP (29).
 
-Paper: M. Zamani, V. Ugrinovskii, "Cooperative robust estimation with local performance guarantees"
-(``../shared/seeds/001_…txt``). Notation follows the paper; nodes and edges are **0-based** here.
+Paper: M. Zamani, V. Ugrinovskii, "Cooperative robust estimation with local performance guarantees".
+Notation follows the paper; nodes and edges are **0-based** here.
 
 Problem data
 ------------

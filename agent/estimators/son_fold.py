@@ -1,7 +1,7 @@
 """Compiled pieces of the robust moving-horizon fusion's per-measurement bookkeeping
 (:mod:`agent.estimators.robust_window`): the fold of a node leaving the window into the arrival cost, and
 the per-axis whitening of that cost. Both were ~30 small numpy calls each per fused measurement (≈ 100 µs of
-the robust MHE's ≈ 260 µs, issue 19); here they are one compiled call each, same algebra.
+the robust MHE's ≈ 260 µs); here they are one compiled call each, same algebra.
 
 :func:`fold_kernel` is robust_window.fold_node's body (robust_mhe's module doc, "The arrival cost"):
 
