@@ -168,8 +168,14 @@ class TabGuard:
         ws._handle_incoming_message = self._incoming
         ws.on_client_connect(self._on_connect)
         ws.on_client_disconnect(self._on_disconnect)
-        self._filter = _FrameFilter(self)
-        logging.getLogger("websockets.server").addFilter(self._filter)
+        self.quiet_logs()
+
+    def quiet_logs(self) -> None:
+        """The log filter and warning filters (call it before the server listens: a port probe may come at
+        once); :meth:`install` calls it too."""
+        if self._filter is None:
+            self._filter = _FrameFilter(self)
+            logging.getLogger("websockets.server").addFilter(self._filter)
         quiet_viser_warnings()
 
     def uninstall(self) -> None:

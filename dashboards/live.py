@@ -225,6 +225,7 @@ class DashboardUI:
         # every tab's messages are checked before Viser acts on them; on a replay page (nothing to steer)
         # the shared widgets (slider, display) take any tab's valid update
         self.guard = TabGuard(limits, shared_writable=not live)
+        self.guard.quiet_logs()
         self.send_control = send_control
         v_host, v_port = ("127.0.0.1", 0) if tls else (host, port)
         self.server = viser.ViserServer(host=v_host, port=v_port, label=f"flocktrack · {info.name}",
