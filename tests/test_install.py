@@ -89,7 +89,7 @@ def test_the_bundled_scenarios_are_listed_and_shown(installed):
 
 def test_main_job_over_zenoh_from_an_empty_directory(installed):
     _, work = installed
-    r = ft(installed, "run", "demo", "--ticks", "20", "--mode", "lockstep", "--quiet")
+    r = ft(installed, "run", "demo", "--ticks", "20", "--quiet")   # the main job as it is: realtime, 25 ticks/s
     assert r.returncode == 0, r.stdout + r.stderr
     out, listed = listed_outputs(r, work)
     assert out.parent == work / "runs" and out.name.startswith("demo-")
