@@ -34,7 +34,9 @@ import argparse
 import json
 import os
 import platform
+import re
 import resource
+import statistics
 import subprocess
 import sys
 import threading
@@ -329,34 +331,72 @@ def _send_updates(tab, i: int) -> None:
         tab.press(uuid, value)
 
 
-def bench_viewers(ticks: int, out_root: Path) -> list[dict]:
+def bench_viewers(ticks: int, out_root: Path, repeats: int = 3) -> list[dict]:
+    """Every case ``repeats`` times, the cases interleaved (A B C D A B C D …) so that a slow spell of the
+    machine falls on all of them; beside each run a 1 ms sleeper counts the machine's own stops."""
+    rows = []
+    for rep in range(repeats):
+        for name, n, send in VIEWER_CASES:
+            rows.append({"repeat": rep, **_viewer_run(name, n, send, ticks, out_root / f"{rep}_{name.replace(' ', '_')}")})
+            print(rows[-1], flush=True)
+    return rows
+
+
+def _viewer_run(name: str, n: int, send: bool, ticks: int, out: Path) -> dict:
+    from machine_gaps import GapMonitor
+
     from flocktrack.launch import free_port
 
-    rows = []
-    for name, n, send in VIEWER_CASES:
-        port, out = free_port(), out_root / name.replace(" ", "_")
+    port = free_port()
+    with GapMonitor() as gaps:
         run = subprocess.Popen([sys.executable, "-m", "flocktrack", "run", "scenarios/demo.toml", "--dashboard",
                                 "--dashboard-port", str(port), "--no-linger", "--ticks", str(ticks), "--out",
                                 str(out)], cwd=str(ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         tabs = subprocess.Popen([sys.executable, __file__, "--tabs", str(port), str(n), str(int(send))],
                                 stdout=subprocess.PIPE, text=True) if n else None
         rc = run.wait(900)
+        connected = False
         if tabs is not None:
             connected = tabs.stdout.readline().strip() == "CONNECTED"
             tabs.wait(30)
-        info = json.loads((out / "run.json").read_text())
-        dash = json.loads((out / "stats" / "dashboard_0.json").read_text()).get("role", {})
-        guard = dash.get("guard", {})
-        rows.append({"case": name, "tabs": n, "sending": send, "exit_code": rc,
-                     "tabs_connected": bool(n) and connected, "missed_deadlines": info.get("missed_deadlines"),
-                     "ticks_per_s": info.get("ticks_per_s"), "dashboard_cpu_s": dash.get("cpu_s"),
-                     "dashboard_wall_s": dash.get("wall_s"),
-                     "dashboard_cpu_share": (dash["cpu_s"] / dash["wall_s"]) if dash.get("wall_s") else None,
-                     "tabs_seen": guard.get("tabs_seen"), "updates_refused": guard.get("total_invalid_updates", 0),
-                     "throttled": guard.get("total_throttled", 0), "closed_for_rate": guard.get("closed_for_rate", 0),
-                     "dashboard_log_bytes": (out / "logs" / "dashboard.log").stat().st_size})
-        print(rows[-1], flush=True)
-    return rows
+    info = json.loads((out / "run.json").read_text())
+    dash = json.loads((out / "stats" / "dashboard_0.json").read_text()).get("role", {})
+    guard = dash.get("guard", {})
+    missed_ticks = sorted({int(k) for f in (out / "logs").glob("agent_*.log")
+                           for k in re.findall(r"deadline on \((\d+), \d+\)", f.read_text(errors="replace"))})
+    g = gaps.result() or {}
+    return {"case": name, "tabs": n, "sending": send, "exit_code": rc, "tabs_connected": connected,
+            "missed_deadlines": info.get("missed_deadlines"), "ticks_with_misses": missed_ticks[:100],
+            "dashboard_exits": info.get("exits", {}).get("dashboard/0"),
+            "dashboard_restarts": info.get("restarts", {}).get("dashboard/0", 0),
+            "machine_stops_over_20ms": g.get("count"), "machine_stop_max_ms": g.get("max_ms"),
+            "ticks_per_s": info.get("ticks_per_s"), "dashboard_cpu_s": dash.get("cpu_s"),
+            "dashboard_wall_s": dash.get("wall_s"),
+            "dashboard_cpu_share": (dash["cpu_s"] / dash["wall_s"]) if dash.get("wall_s") else None,
+            "tabs_seen": guard.get("tabs_seen"), "updates_refused": guard.get("total_invalid_updates", 0),
+            "throttled": guard.get("total_throttled", 0), "closed_for_rate": guard.get("closed_for_rate", 0),
+            "dashboard_log_bytes": (out / "logs" / "dashboard.log").stat().st_size,
+            # a dashboard that exited on its own: what it said last (the run's directory is temporary)
+            "dashboard_log_tail": _tail(out / "logs" / "dashboard.log", 40)
+            if any(info.get("exits", {}).get("dashboard/0") or []) else None}
+
+
+def _tail(path: Path, n: int) -> list[str]:
+    return path.read_text(errors="replace").splitlines()[-n:]
+
+
+def viewer_summary(rows: list[dict]) -> dict:
+    """Per case over the repeats: missed deadlines (each run, median, total), runs with none, the
+    dashboard's CPU share (median)."""
+    out = {}
+    for name, _n, _send in VIEWER_CASES:
+        rs = [r for r in rows if r["case"] == name]
+        missed = [int(r["missed_deadlines"] or 0) for r in rs]
+        out[name] = {"missed_each": missed, "missed_median": statistics.median(missed), "missed_total": sum(missed),
+                     "runs_with_none": sum(m == 0 for m in missed),
+                     "machine_stops_each": [r["machine_stops_over_20ms"] for r in rs],
+                     "dashboard_cpu_share_median": round(statistics.median(r["dashboard_cpu_share"] or 0 for r in rs), 4)}
+    return out
 
 
 def machine_note() -> dict:
@@ -366,14 +406,16 @@ def machine_note() -> dict:
             "loadavg_at_start": os.getloadavg(), "busiest_processes_at_start": top.splitlines()[1:8]}
 
 
-def main_viewers(ticks: int, out: Path) -> int:
+def main_viewers(ticks: int, out: Path, repeats: int = 3) -> int:
     import tempfile
 
     res = {"machine": machine_note(), "scenario": "scenarios/demo.toml (12 sensors, T = 0.04 s, realtime, speed 1.0)",
            "ticks": ticks}
     with tempfile.TemporaryDirectory() as d:
-        res["cases"] = bench_viewers(ticks, Path(d))
+        res["cases"] = bench_viewers(ticks, Path(d), repeats)
+    res["summary"] = viewer_summary(res["cases"])
     res["machine"]["loadavg_at_end"] = os.getloadavg()
+    print(json.dumps(res["summary"], indent=1))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1))
     print(f"wrote {out}")
@@ -397,9 +439,11 @@ def main() -> int:
                                                 "(--viewers: dashboard_viewers.json)")
     ap.add_argument("--viewers", action="store_true", help="the main job with 0, 1 and 5 tabs (see above)")
     ap.add_argument("--demo-ticks", type=int, default=1000, help="--viewers: ticks of each run")
+    ap.add_argument("--repeats", type=int, default=3, help="--viewers: runs of each case (interleaved)")
     args = ap.parse_args()
     if args.viewers:
-        return main_viewers(args.demo_ticks, Path(args.out or ROOT / "bench" / "results" / "dashboard_viewers.json"))
+        return main_viewers(args.demo_ticks, Path(args.out or ROOT / "bench" / "results" / "dashboard_viewers.json"),
+                            args.repeats)
     args.out = args.out or str(ROOT / "bench" / "results" / "dashboard.json")
     load0 = os.getloadavg()
     res = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),

@@ -89,8 +89,14 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.recording:
         if args.png:
+            import importlib.util
+
             from .plots import save_static_png
 
+            if importlib.util.find_spec("matplotlib") is None:
+                print("error: --png needs matplotlib, an optional dependency of flocktrack; install it with: "
+                      "pip install 'flocktrack[figures]'", file=sys.stderr)
+                return 2
             model = replay_model_from_file(args.recording)
             k = model.last if args.tick is None else args.tick
             save_static_png(args.png, model.series(k), model.snapshot(k), model.info.n,
