@@ -426,8 +426,20 @@ class _FrameFilter(logging.Filter):
         if msg != "connection handler failed":
             return True
         conn = getattr(record, "websocket", None)
-        if self.guard.tab_of(conn) is None:
-            return True                   # another server's (tests run several)
         exc = record.exc_info[1] if record.exc_info else None
+        if self.guard.tab_of(conn) is None and not _raised_decoding(exc):
+            return True                   # another server's (tests run several), and not a tab's bad frame
         self.guard.malformed_frame(conn, exc)
         return False
+
+
+def _raised_decoding(exc: BaseException | None) -> bool:
+    """Whether ``exc`` came out of Viser's decoding of a message a tab sent (``viser/infra/_messages.py``):
+    a tab's bad frame even when the tab is not known here (refused at the cap, or gone before it was
+    registered)."""
+    tb = exc.__traceback__ if exc is not None else None
+    while tb is not None:
+        if tb.tb_frame.f_code.co_filename.replace("\\", "/").endswith("viser/infra/_messages.py"):
+            return True
+        tb = tb.tb_next
+    return False

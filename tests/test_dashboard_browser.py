@@ -236,7 +236,10 @@ def session(tmp_path_factory):
         world.close()
     th.join(timeout=60)
     print("browser timeline (s, step, tick shown, run's tick):", results.get("timeline"))
-    assert "error" not in results, results["error"] + f"\ntimeline: {results.get('timeline')}"
+    if "error" in results:   # what the dashboard said too: its log is in a temporary directory
+        log = out_dir / "logs" / "dashboard.log"
+        tail = "\n".join(log.read_text(errors="replace").splitlines()[-60:]) if log.is_file() else "(no log)"
+        pytest.fail(f"{results['error']}\ntimeline: {results.get('timeline')}\ndashboard log (last lines):\n{tail}")
     assert not th.is_alive(), "the browser session did not finish during the run"
     if DOCS:
         for name in ("dashboard.png", "dashboard_inspect.png"):

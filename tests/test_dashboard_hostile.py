@@ -36,7 +36,7 @@ VALUES = st.one_of(
     st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.sampled_from([10**18, -10**18, 2**53 + 1]),
     st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=40), st.just("x" * 10_000),
     st.binary(max_size=64), st.lists(st.integers(-5, 5), max_size=4),
-    st.dictionaries(st.text(max_size=5), st.integers(), max_size=3))
+    st.dictionaries(st.text(max_size=5), st.integers(-2**63, 2**64 - 1), max_size=3))   # msgpack's ints
 PROPS = st.sampled_from(["value", "value", "value", "min", "max", "options", "update_cb", "sync_cb", "removed",
                          "nonexistent"])
 SERVER_TYPES = st.sampled_from(["ShareUrlRequest", "ShareUrlDisconnect", "GetRenderResponseMessage",
@@ -151,7 +151,8 @@ def test_hostile_tabs_change_nothing_shared_and_a_later_operator_still_steers(ca
             assert wait(lambda: all(t.uuids for t in attack.tabs) and len(ui.tabs) == len(WRONG))
             attack.every_value_to_every_widget(10**18)       # the first report: a huge sensor id, everywhere
 
-            @settings(max_examples=25, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+            @settings(max_examples=25, deadline=None, database=None, derandomize=True,
+                  suppress_health_check=list(HealthCheck))
             @given(script=SCRIPT)
             def hostile(script) -> None:
                 attack.run(script)
@@ -301,7 +302,7 @@ def _scripts(n: int) -> list:
     hypothesis writes the scripts, the run plays them all)."""
     out: list = []
 
-    @settings(max_examples=n, deadline=None, database=None, phases=[Phase.generate],
+    @settings(max_examples=n, deadline=None, database=None, phases=[Phase.generate], derandomize=True,
               suppress_health_check=list(HealthCheck))
     @given(script=SCRIPT)
     def collect(script) -> None:
@@ -327,5 +328,5 @@ def test_hostile_viewers_of_a_real_run_leave_its_estimates_and_its_operator_alon
     log = (out / "logs" / "dashboard.log").read_text()
     assert "Traceback" not in log and len(log) < LOG_LIMIT, (len(log), log[-3000:])
     role = json.loads((out / "stats" / "dashboard_0.json").read_text())["role"]
-    assert role["operator_tabs"] >= 1 and role["wrong_tokens"] >= 2 and "refused_controls" not in role
+    assert role["operator_tabs"] >= 1 and role["wrong_tokens"] >= 1 and "refused_controls" not in role
     assert role["guard"]["total_invalid_updates"] > 0, role["guard"]
