@@ -169,6 +169,12 @@ class TabGuard:
         ws.on_client_connect(self._on_connect)
         ws.on_client_disconnect(self._on_disconnect)
         self.quiet_logs()
+        # a tab may have connected while the server started (it listens from its constructor on): guard it
+        # the same way, on Viser's loop, before any more of its messages are handled
+        loop = ws._background_event_loop
+        for client in tuple(server.get_clients().values()):
+            if loop is not None:
+                asyncio.run_coroutine_threadsafe(self._on_connect(client._websock_connection), loop).result(10)
 
     def quiet_logs(self) -> None:
         """The log filter and warning filters (call it before the server listens: a port probe may come at
@@ -188,6 +194,8 @@ class TabGuard:
         its connection's own dispatch for admitted messages and silence the direct one."""
         cid = conn.client_id
         live = self._ws._live_connections.get(cid)
+        if cid in self.tabs or live is None:   # guarded already (installed while it connected), or gone
+            return
         if len(self.tabs) >= self.limits.max_tabs:
             self.counters["refused_tabs"] += 1
             self._log_global("refused", "a tab was refused: the dashboard serves at most %d tabs at once (%d "

@@ -445,7 +445,7 @@ class DashboardUI:
     def add_operator_panel(self, gui, client_id: int | None):
         """The run and fault controls on ``gui`` for tab ``client_id`` (dashboards/operator.py); the tab may
         change them (the guard), and is an operator once they are all built."""
-        from .operator import build_panel
+        from .operator import build_panel, show_panel
 
         if client_id is not None:
             gui = GuardedGui(gui, lambda h: self.guard.allow(h, client_id))
@@ -453,6 +453,7 @@ class DashboardUI:
         self.operators.panels[client_id] = panel
         if client_id is not None:
             self.guard.mark_operator(client_id)
+        show_panel(panel)   # only now: every button it shows works
         return panel
 
     def _add_tab_panels(self, client) -> None:

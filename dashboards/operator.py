@@ -139,17 +139,24 @@ def _checked(ui, client_id: int | None) -> Callable[..., None]:
 
 
 def _folder(gui, p: OperatorPanel, *args, **kwargs):
-    """A folder of the panel's (removed with the rest if the panel fails to build)."""
-    f = gui.add_folder(*args, **kwargs)
+    """A folder of the panel's, hidden until the whole panel is built and the tab is an operator (a button
+    the tab could see before would be refused), and removed with the rest if the panel fails to build."""
+    f = gui.add_folder(*args, visible=False, **kwargs)
     p.folders.append(f)
     return f
+
+
+def show_panel(p: OperatorPanel) -> None:
+    """Show the operator's folders: call it once the tab is registered as an operator."""
+    for folder in p.folders:
+        folder.visible = True
 
 
 def _display(gui, p: OperatorPanel, ui, order: float) -> dict:
     """The shared display's settings (dashboards/tabs.py build_display): an operator's to change."""
     from .tabs import build_display
 
-    folder, widgets = build_display(gui, ui, order)
+    folder, widgets = build_display(gui, ui, order, visible=False)
     p.folders.append(folder)
     return widgets
 

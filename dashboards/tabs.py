@@ -55,7 +55,7 @@ DISPLAY_TOGGLES = (("Links", "links"), ("Range circles", "circles"), ("Node esti
                    ("Target trail", "trail"))
 
 
-def build_display(gui, ui, order: float) -> tuple:
+def build_display(gui, ui, order: float, visible: bool = True) -> tuple:
     """Folded: the Display folder (links, range circles, estimates, trail, the error colour scale), started
     from ``ui.display`` and writing it; returns the folder and its widgets by field name."""
     d, out = ui.display, {}
@@ -66,7 +66,7 @@ def build_display(gui, ui, order: float) -> tuple:
             ui.dirty = True
         return ui.guard.safe(set_, f"display.{name}")
 
-    with gui.add_folder("Display (every tab)", expand_by_default=False, order=order) as folder:
+    with gui.add_folder("Display (every tab)", expand_by_default=False, order=order, visible=visible) as folder:
         for label, name in DISPLAY_TOGGLES:
             out[name] = gui.add_checkbox(label, bool(getattr(d, name)))
         scale = d.err_scale if math.isfinite(d.err_scale) and 0.0 <= d.err_scale <= 1e6 else 0.0

@@ -34,6 +34,7 @@ class Tab:
                           max_size=None, open_timeout=30)
         self.uuids: list[str] = []
         self.widgets: dict[str, dict] = {}     #: uuid → the message that created it (type, props)
+        self.visible: dict[str, bool] = {}     #: uuid → whether the widget shows, as the server last said
         self.frames = self.nbytes = 0
         self.closed = threading.Event()
         self._reader = threading.Thread(target=self._read, daemon=True) if read else None
@@ -57,6 +58,10 @@ class Tab:
                         seen.add(uuid)
                         self.uuids.append(uuid)
                         self.widgets[uuid] = m
+                        self.visible[uuid] = (m.get("props") or {}).get("visible", True) is not False
+                    elif isinstance(uuid, str) and m.get("type") == "GuiUpdateMessage" \
+                            and "visible" in (m.get("updates") or {}):
+                        self.visible[uuid] = bool(m["updates"]["visible"])
         except Exception:  # closed (by us, or by the server)
             pass
         finally:
@@ -71,6 +76,12 @@ class Tab:
                     and (label is None or props.get("label") == label):
                 return uuid
         return None
+
+    def shown(self, kind: str, option: str | None = None, label: str | None = None) -> str | None:
+        """:meth:`find`, only once the server has shown the widget (an operator's folders show when the
+        panel is whole and the tab is an operator)."""
+        uuid = self.find(kind, option=option, label=label)
+        return uuid if uuid is not None and self.visible.get(uuid, True) else None
 
     def send(self, message: dict) -> bool:
         """Send one message (False: the connection is closed)."""

@@ -261,12 +261,14 @@ class Steering:
             bus = ZenohBus(launcher.run, connect=launcher.endpoint)
             bus.subscribe("world/event", lambda key, m: self.acks.append(m.verb))
             attack = Attack(port)
-            assert wait(lambda: all(t.uuids for t in attack.tabs), 60), "the viewers were sent no widgets"
+            # every viewer has its own panels (the dashboard has taken it in), then the attack begins
+            assert wait(lambda: all(t.find("GuiFolderMessage", label="Inspect") for t in attack.tabs), 60), \
+                "the viewers were sent no panels of their own"
             attack.every_value_to_every_widget(10**18)
             attack.run(self.script)
             self.notes["attack_sent"], self.notes["reopened"] = attack.sent, attack.reopened
             op = Tab(port, f"/operator/{TOKEN}")
-            assert wait(lambda: op.find("GuiButtonGroupMessage", option="Pause"), 60), "no run control"
+            assert wait(lambda: op.shown("GuiFolderMessage", label="Run control"), 60), "no run control"
             run = op.find("GuiButtonGroupMessage", option="Pause")
             for verb in ("Pause", "Step", "Resume"):
                 op.press(run, verb)
