@@ -31,7 +31,7 @@ from agent.estimators.registry import specs
 from agent.scenario import ScenarioError, load_scenario, parse_scenario, scenario_data
 
 from . import __version__
-from .resources import MissingDataError, scenario_arg
+from .resources import MissingDataError, add_scenario_argument
 
 
 class _Lazy:
@@ -75,6 +75,9 @@ def cmd_scenarios(args) -> int:
     from .resources import UnknownScenarioError, scenario_description, scenario_file, scenario_names
 
     if args.action == "show":
+        if not args.name:
+            print("error: scenarios show NAME: which scenario? (`flocktrack scenarios` lists them)", file=sys.stderr)
+            return 2
         try:
             sys.stdout.write(scenario_file(args.name).read_text(encoding="utf-8"))
         except UnknownScenarioError as exc:
@@ -329,7 +332,7 @@ def cmd_replay(args) -> int:
 
 def _add_run(sub) -> None:
     r = sub.add_parser("run", help="run a scenario")
-    r.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
+    add_scenario_argument(r)
     r.add_argument("--transport", choices=["inproc", "zenoh"], default="zenoh",
                    help="zenoh: one OS process per agent over an embedded router (default); inproc: one process")
     r.add_argument("--mode", choices=["lockstep", "realtime"], help="override run.mode")
@@ -420,11 +423,11 @@ def parser() -> _Parser:
     ls.add_argument("name", nargs="?", help="with show: the scenario")
     ls.set_defaults(fn=cmd_scenarios)
     v = sub.add_parser("validate", help="check a scenario file")
-    v.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
+    add_scenario_argument(v)
     v.set_defaults(fn=cmd_validate)
     _add_run(sub)
     dg = sub.add_parser("design", help="solve and store a scenario's pre-run design (its estimator's design hook)")
-    dg.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
+    add_scenario_argument(dg)
     dg.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
     dg.add_argument("--out", required=True)
     dg.set_defaults(fn=cmd_design)
@@ -443,10 +446,7 @@ def parser() -> _Parser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = parser()
-    args = ap.parse_args(argv)
-    if getattr(args, "action", None) == "show" and not args.name:
-        ap.parse_args(["scenarios", "--help"])
+    args = parser().parse_args(argv)
     try:
         return args.fn(args)
     except ScenarioError as exc:

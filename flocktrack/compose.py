@@ -69,9 +69,10 @@ from typing import Any
 
 import yaml
 
+from . import __version__
 from .compose_keys import KEYS_MOUNT, KeysError, check_keys, stage_keys
 from .launch import RestartPolicy
-from .resources import scenario_arg
+from .resources import add_scenario_argument
 
 ROUTER_PORT = 7447
 APP_DIR = "/app"                       # WORKDIR of the image: the project's sources (no tests)
@@ -489,8 +490,6 @@ WHEELS_DIR = "wheels"   # beside a release Dockerfile: wheels to install instead
 def dockerfile_text(from_sources: bool) -> str:
     """The image's Dockerfile: built from a source checkout (the build context is the checkout), or
     from the installed release (``flocktrack==<version>``; the context is the compose file's directory)."""
-    from . import __version__
-
     body = _DOCKERFILE_SOURCES if from_sources else _DOCKERFILE_RELEASE
     return (_DOCKERFILE_HEAD + body + _DOCKERFILE_TAIL).format(
         app=APP_DIR, data=DATA_DIR, port=ROUTER_PORT, dash=DASHBOARD_PORT, venv=VENV_DIR, wheels=WHEELS_DIR,
@@ -636,7 +635,7 @@ def stale(files: dict[str, str], out_dir: str | Path) -> list[str]:
 # ============================================================================ CLI
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
+    add_scenario_argument(ap)
     ap.add_argument("--out", default=".",
                     help="directory for docker-compose.yml, Dockerfile and compose/ (the run's inputs; default: .)")
     ap.add_argument("--image", default=DEFAULT_IMAGE, help=f"image name every service runs (default {DEFAULT_IMAGE})")
@@ -699,19 +698,13 @@ def cmd_compose(args) -> int:
     paths = write(files, args.out)
     if data:
         Path(data).mkdir(parents=True, exist_ok=True)
-    if "Dockerfile" in files and f"{WHEELS_DIR}/README" in files:
-        print(f"note: no flocktrack source checkout here: the image installs flocktrack=={_version()} (from "
+    if f"{WHEELS_DIR}/README" in files:
+        print(f"note: no flocktrack source checkout here: the image installs flocktrack=={__version__} (from "
               f"{args.out}/{WHEELS_DIR}/ if you put its wheel there, else from the package index)", file=sys.stderr)
     secrets = f"; {INPUTS_DIR}/keys/ holds each service's credentials (keep it private)" if args.secure else ""
     print(f"wrote {', '.join(str(p) for p in paths)}{secrets}; start it with: "
           f"docker compose -f {paths[0]} up --build")
     return 0
-
-
-def _version() -> str:
-    from . import __version__
-
-    return __version__
 
 
 def register(subparsers) -> argparse.ArgumentParser:

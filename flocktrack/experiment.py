@@ -51,7 +51,7 @@ import tomli_w
 
 from agent.scenario import ScenarioError, parse_scenario
 
-from .resources import scenario_arg
+from .resources import add_scenario_argument
 
 #: grid-key shorthands → dotted scenario keys
 SHORTHANDS = {
@@ -773,7 +773,7 @@ def _seeds(text: str) -> list[int]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
+    add_scenario_argument(p)
     p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...",
                    help="a grid axis (repeatable): a dotted scenario key or a shorthand "
                         f"({', '.join(f'{k}={v}' for k, v in SHORTHANDS.items())}) and its TOML values")

@@ -51,7 +51,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .resources import scenario_arg
+from .resources import add_scenario_argument
 
 SECURE_TEMPLATE = "secure.json5"   # the secure router's template: broker_cfg/secure.json5 of the package
 
@@ -435,7 +435,7 @@ def cmd_keys(args) -> int:
 def register(subparsers) -> None:
     """Add ``flocktrack keys SCENARIO --out DIR`` to the CLI."""
     k = subparsers.add_parser("keys", help="make a CA, per-process certificates/passwords, the router ACL and configs")
-    k.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
+    add_scenario_argument(k)
     k.add_argument("--out", required=True, help="directory for the key set")
     k.add_argument("--run", help="run name the ACL is written for (key prefix ft/<run>/); default: the scenario's")
     k.add_argument("--port", type=int, default=7447, help="router TLS port the client configs connect to")

@@ -41,10 +41,10 @@ def _data_dir(kind: str) -> Path:
         path = Path(os.fspath(root))
     except TypeError:   # a Traversable that is no file system path (a zipped install)
         raise MissingDataError(f"flocktrack's {kind}/ is not on the file system ({root!r}); install the package "
-                          f"unzipped: {REINSTALL}") from None
+                               f"unzipped: {REINSTALL}") from None
     if not path.is_dir():
         raise MissingDataError(f"flocktrack's package data {kind}/ is missing ({path}): the install is broken; "
-                          f"{REINSTALL}")
+                               f"{REINSTALL}")
     return path
 
 
@@ -54,7 +54,7 @@ def broker_config(name: str) -> Path:
     path = _data_dir(CONFIG_DIR) / name
     if not path.is_file():
         raise MissingDataError(f"flocktrack's package data {CONFIG_DIR}/{name} is missing: the install is broken; "
-                          f"{REINSTALL}")
+                               f"{REINSTALL}")
     return path
 
 
@@ -129,6 +129,11 @@ def scenario_arg(text: str) -> str:
         return resolve_scenario(text)
     except (UnknownScenarioError, MissingDataError) as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_scenario_argument(parser) -> None:
+    """The positional SCENARIO of a sub-command: a file, or a bundled scenario's name (:func:`scenario_arg`)."""
+    parser.add_argument("scenario", type=scenario_arg, help="a scenario file, or the name of a bundled one")
 
 
 def _unknown(arg: str) -> str:

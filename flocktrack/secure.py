@@ -51,7 +51,7 @@ def mesh_router_config(peers: list[str], port: int = MESH_PORT, base: str | Path
     "Network-namespace cuts"). A full queue towards another host now drops after 1 ms
     (``transport.link.tx.queue.congestion_control.drop.wait_before_drop``) — a payload that a dead link
     would have lost anyway — and the lease expires on time."""
-    conf = load_json5(config_file(base))
+    conf = load_json5(base)
     conf["listen"]["endpoints"] = [f"tcp/0.0.0.0:{port}"]
     conf["connect"]["endpoints"] = [f"tcp/{p}:{port}" for p in peers]
     if zid is not None:
