@@ -34,7 +34,8 @@ from agent import wire
 from . import plots
 from .guard import Limits, TabGuard
 from .state import DashboardState, ReplayModel, RunInfo, Snapshot
-from .tabs import DisplaySettings, GuardedGui, TabPanel, build_display, build_tab, clamp_index, render_tab
+from .tabs import (DisplaySettings, GuardedGui, TabPanel, build_display, build_tab, clamp_index, render_tab, set_segments,
+                   show)
 
 log = logging.getLogger(__name__)
 
@@ -362,25 +363,17 @@ class DashboardUI:
                 h.value = i
 
     @staticmethod
-    def _segments(h, segs: np.ndarray, show: bool = True) -> None:
-        if not show or len(segs) == 0:
-            if h.visible:
-                h.visible = False
-            return
-        h.points = segs
-        if not h.visible:
-            h.visible = True
+    def _segments(h, segs: np.ndarray, visible: bool = True) -> None:
+        set_segments(h, segs, visible)
 
     @staticmethod
-    def _cloud(h, pts: np.ndarray, colors, show: bool = True) -> None:
-        if not show or len(pts) == 0:
-            if h.visible:
-                h.visible = False
+    def _cloud(h, pts: np.ndarray, colors, visible: bool = True) -> None:
+        if not visible or len(pts) == 0:
+            show(h, False)
             return
         h.points = pts
         h.colors = np.asarray(colors, np.uint8)
-        if not h.visible:
-            h.visible = True
+        show(h, True)
 
     def render_scene(self, snap: Snapshot | None, err_rows: np.ndarray | None = None) -> plots.SceneArrays | None:
         """Redraw the scene from a snapshot (a handful of batched messages)."""

@@ -142,17 +142,19 @@ def _add_overlays(scene, panel: TabPanel, size: float) -> None:
     o["label"] = scene.add_label("/tab/selected/label", "", visible=False)
 
 
-def _show(h, on: bool) -> None:
+def show(h, on: bool) -> None:
+    """Set a scene handle's visibility, sending nothing when it is already so."""
     if h.visible != on:
         h.visible = on
 
 
-def _segments(h, segs: np.ndarray) -> None:
-    if len(segs) == 0:
-        _show(h, False)
+def set_segments(h, segs: np.ndarray, visible: bool = True) -> None:
+    """Draw ``segs`` with the line-segment handle ``h`` (hidden when ``visible`` is off or there are none)."""
+    if not visible or len(segs) == 0:
+        show(h, False)
         return
     h.points = segs
-    _show(h, True)
+    show(h, True)
 
 
 def render_tab(panel: TabPanel, snap, ui) -> None:
@@ -163,24 +165,24 @@ def render_tab(panel: TabPanel, snap, ui) -> None:
         return
     panel.drawn = key
     sel = plots.selection_arrays(snap, panel.selected, nsig=key[3])
-    _segments(o["links"], sel.links)
+    set_segments(o["links"], sel.links)
     if key[2]:
-        _segments(o["ellipse"], sel.ellipse)
+        set_segments(o["ellipse"], sel.ellipse)
     else:
-        _show(o["ellipse"], False)
+        show(o["ellipse"], False)
     if sel.pos is not None:
-        _segments(o["ring"], plots.circle_segments(sel.pos[None], 1.1 * ui.marker_size, 24))
+        set_segments(o["ring"], plots.circle_segments(sel.pos[None], 1.1 * ui.marker_size, 24))
         o["label"].position = tuple(sel.pos + np.array([0.0, 0.0, 1.5 * ui.marker_size]))
         o["label"].text = f"sensor {panel.selected}"
-        _show(o["label"], True)
+        show(o["label"], True)
     else:
-        _show(o["ring"], False)
-        _show(o["label"], False)
+        show(o["ring"], False)
+        show(o["label"], False)
     if sel.est is not None:
         o["est"].points = sel.est[None].astype(np.float32)
-        _show(o["est"], True)
+        show(o["est"], True)
     else:
-        _show(o["est"], False)
+        show(o["est"], False)
     text = inspect_text(snap, panel.selected, ui.info.pos_dims, key[3])
     if text != w["text"].content:
         w["text"].content = text
