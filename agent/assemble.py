@@ -14,6 +14,7 @@ import numpy as np
 
 from .control.flocking import FlockingController
 from .estimators.registry import make_estimator
+from .ports import Ports
 from .models import DisturbedSensor, IntelligentTarget, LinearSensor, LinearTarget
 from .roles.common import Role
 from .roles.sensor import SensorRole
@@ -127,12 +128,25 @@ class WorldKind:
 
     target: Callable[[Scenario], TargetRole]
     sensor: Callable[[Scenario, int, dict[str, Any], bool], Role]
+    sensor_class: Callable[[Scenario], type[Role]]    #: the class of its sensors (its declared ports)
     extra: tuple[str, ...] = ()
 
 
+def _uav_sensor_class(sc: Scenario) -> type[Role]:
+    from .roles.uav import UavFusionNodeRole, UavRole
+
+    return UavFusionNodeRole if sc.uav.fusion_mode == "distributed" else UavRole
+
+
+def _extra_class(name: str) -> type[Role]:
+    from .roles.fusion import FusionRole
+
+    return {"fusion": FusionRole}[name]
+
+
 KINDS: dict[str, WorldKind] = {
-    "flock": WorldKind(_flock_target, _flock_sensor),
-    "uav_fusion": WorldKind(_uav_target, _uav_sensor, extra=("fusion",)),
+    "flock": WorldKind(_flock_target, _flock_sensor, lambda sc: SensorRole),
+    "uav_fusion": WorldKind(_uav_target, _uav_sensor, _uav_sensor_class, extra=("fusion",)),
 }
 
 
@@ -149,6 +163,18 @@ def build_sensor(sc: Scenario, i: int, design: dict[str, Any] | None = None, rej
 def extra_processes(sc: Scenario) -> tuple[str, ...]:
     """The roles scenario ``sc`` runs beyond world, target and sensors (e.g. ``("fusion",)``)."""
     return KINDS[sc.kind].extra
+
+
+def role_ports(sc: Scenario, kind: str) -> Ports:
+    """What the agent-side role ``kind`` of scenario ``sc`` declares it writes and reads: ``agent`` (its
+    sensors), ``target``, or one of :func:`extra_processes` (``{i}`` not yet filled in)."""
+    if kind == "agent":
+        return KINDS[sc.kind].sensor_class(sc).PORTS
+    if kind == "target":
+        return TargetRole.PORTS
+    if kind in extra_processes(sc):
+        return _extra_class(kind).PORTS
+    raise ValueError(f"{sc.source} runs no {kind!r} role")
 
 
 def build_extra(sc: Scenario, name: str) -> Role:

@@ -51,11 +51,13 @@ class BusStats:
     dropped: Counter = field(default_factory=Counter)
     handler_errors: int = 0
     held: int = 0     #: addressed payloads held until their receiver's subscription reached us (ZenohBus)
+    undeclared: Counter = field(default_factory=Counter)   #: puts outside the node's declared writes, by key
 
     def as_dict(self) -> dict:
         return {"sent": self.sent, "sent_by_key": dict(sorted(self.sent_by_key.items())),
                 "received": self.received, "dropped": dict(self.dropped),
-                "handler_errors": self.handler_errors, "held": self.held}
+                "handler_errors": self.handler_errors, "held": self.held,
+                "undeclared": dict(sorted(self.undeclared.items()))}
 
 
 
@@ -241,6 +243,8 @@ class ZenohBus:
         self._matched: dict[str, bool] = {}        # addressed keys: does the receiver's subscription reach us?
         self._held: dict[str, deque] = {}          # addressed payloads put while it did not (in order)
         self._decls: list = []
+        self._writes: tuple[str, ...] | None = None   # the declared writes (restrict_writes), None: unchecked
+        self._undeclared: set[str] = set()
         self._closed = False
         _LIVE.add(self)
 
@@ -265,7 +269,19 @@ class ZenohBus:
                 self.prefix + key, congestion_control=z.CongestionControl.BLOCK)
             if wire.addressed(key):
                 self._watch_matching(key, pub)
+            if self._writes is not None and not any(key_matches(w, key) for w in self._writes):
+                self._undeclared.add(key)
+                log.warning("put on %s, which this node does not declare among its writes (%s): counted; a "
+                            "secure run's router denies it", key, ", ".join(self._writes))
+        if key in self._undeclared:
+            self.stats.undeclared[key] += 1
         return pub
+
+    def restrict_writes(self, writes) -> None:
+        """The keys this node declares it puts (:mod:`agent.ports`). A put outside them is still sent — in a
+        secure run the router's access-control list is what denies it — but counted by key
+        (``stats.undeclared``) and logged once per key."""
+        self._writes = tuple(writes)
 
     # ------------------------------------------------------------------ addressed payloads: held until matched
     # A put is dropped — at the publisher, or at a router that has not heard of the subscription yet —

@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 
 def process_age_s() -> float:
     """Seconds since this process was created — its fork, from /proc (a process forked from the launcher's
-    pre-imported template, flocktrack/forkserver.py, imported this module long before it existed)."""
+    pre-imported template, flocktrack/launch/forkserver.py, imported this module long before it existed)."""
     try:
         fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
         uptime = float(Path("/proc/uptime").read_text().split()[0])
@@ -169,6 +169,8 @@ def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: Stop
         if pm is not None:
             role.on_member(pm[0], pm[1], alive)
 
+    if hasattr(bus, "restrict_writes"):
+        bus.restrict_writes(role.ports().writes)
     role.attach(bus)
     bus.watch_members(on_member)
     bus.declare_token(name)
@@ -239,8 +241,8 @@ def write_stats(name: str, bus, role: Role | None = None) -> None:
 
 
 def _file_stem(name: str) -> str:
-    """'agent/3' → 'agent_3': a process's name as a file name (stats, profiles)."""
-    return name.replace("/", "_")
+    """'agent/3' → 'agent-3': a node's name as a file name (stats, profiles), as the run plan writes it."""
+    return name.replace("/", "-")
 
 
 def profiled(name: str, fn):

@@ -33,9 +33,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 from docker_engine import Engine  # noqa: E402 - after the sys.path insert above
 from provision import docker_compose, docker_engine  # noqa: E402 - after the sys.path insert above
 
-from flocktrack import image  # noqa: E402 - after the sys.path insert above
+from flocktrack.deploy import image  # noqa: E402 - after the sys.path insert above
 from flocktrack.cli import main as cli  # noqa: E402 - after the sys.path insert above
-from flocktrack.launch import free_port  # noqa: E402 - after the sys.path insert above
+from flocktrack.launch.launcher import free_port  # noqa: E402 - after the sys.path insert above
 
 BASE = "flocktrack-base:bench"
 IMAGE = "flocktrack:bench"

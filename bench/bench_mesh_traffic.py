@@ -9,7 +9,7 @@ the run (``--from``, ``--to``), the switch's port counters give what each host s
 (port tx), in bytes and Ethernet frames — everything: Zenoh framing, TCP/IP headers, keep-alives, liveliness.
 
 The prediction reads the run's recording: every message of those ticks, its msgpack size (``wire.encode``),
-its publisher's host, and the hosts with a subscriber for its key (flocktrack/keys.py READS: the recorder,
+its publisher's host, and the hosts with a subscriber for its key (flocktrack/deploy/keys.py READS: the recorder,
 world, target and launcher on a; every sensor reads world/tick, world/end, world/event, target/truth and
 control/**), one copy per remote router (Zenoh routes a put once to each router with a matching
 subscription). Exchange payloads are addressed: sensor i sends one copy per sensor j that hears
@@ -40,9 +40,9 @@ import netns  # noqa: E402 - from tests/, after the sys.path lines above
 from test_multihost import HOSTS, WHERE, mesh_run  # noqa: E402 - same
 
 from agent import wire  # noqa: E402 - after the sys.path lines above
-from flocktrack.record import read_recording  # noqa: E402 - same
+from flocktrack.record.reader import read_recording  # noqa: E402 - same
 
-#: what a sensor subscribes to besides its own inboxes (flocktrack/keys.py READS["agent"])
+#: what a sensor subscribes to besides its own inboxes (flocktrack/deploy/keys.py READS["agent"])
 SENSOR_READS = ("world/tick", "world/event", "world/end", "target/truth")
 HUB = HOSTS[0]          # the world, the target, the recorder and the launcher run on host a
 

@@ -35,8 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from agent.scenario import parse_scenario, scenario_data  # noqa: E402 - after the sys.path insert above
-from flocktrack.record import read_recording  # noqa: E402 - after the sys.path insert above
-from flocktrack.run import run_zenoh_to_dir  # noqa: E402 - after the sys.path insert above
+from flocktrack.record.reader import read_recording  # noqa: E402 - after the sys.path insert above
+from flocktrack.engine.run import run_zenoh_to_dir  # noqa: E402 - after the sys.path insert above
 
 TARGETS = {"member_s": 1.0, "good_s": 1.0, "all_back_s": 2.0}   # the targets (rejoin ≤ 1 s, router ≤ 2 s)
 

@@ -31,9 +31,9 @@ sys.path.insert(0, str(ROOT))
 from agent import wire
 from agent.scenario import parse_scenario
 from agent.scenario import scenario_data
-from flocktrack.launch import free_port, open_router
-from flocktrack.record import read_recording
-from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir
+from flocktrack.launch.launcher import free_port, open_router
+from flocktrack.record.reader import read_recording
+from flocktrack.engine.run import run_inproc_to_dir, run_zenoh_to_dir
 from topology.graph import neighbour_lists, range_adjacency
 
 

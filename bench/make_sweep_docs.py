@@ -29,7 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from flocktrack.experiment import SweepConfig, parse_grid, run_sweep
+from flocktrack.experiment.sweep import SweepConfig, run_sweep
+from flocktrack.experiment.grid import parse_grid
 
 DOCS = ROOT / "docs"
 

@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from agent.scenario import parse_scenario, scenario_data  # noqa: E402 - after the sys.path insert above
-from flocktrack.run import run_zenoh_to_dir  # noqa: E402 - after the sys.path insert above
+from flocktrack.engine.run import run_zenoh_to_dir  # noqa: E402 - after the sys.path insert above
 
 PAGE = os.sysconf("SC_PAGE_SIZE")
 SAMPLE_S = 5.0

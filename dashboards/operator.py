@@ -29,10 +29,15 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from agent import wire
+from agent.ports import Ports
 
 log = logging.getLogger(__name__)
 
 TOKEN_ENV = "FLOCKTRACK_DASHBOARD_TOKEN"
+
+#: the dashboard writes only the control plane; it reads what the run's other nodes write (the run plan fills
+#: its reads in: every node's writes but the addressed copies)
+PORTS = Ports(writes=("control/**",))
 PATH_PREFIX = "/operator/"
 
 

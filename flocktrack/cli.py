@@ -30,8 +30,8 @@ from agent.estimators.registry import names as estimator_names
 from agent.estimators.registry import specs
 from agent.scenario import ScenarioError, load_scenario, parse_scenario, scenario_data
 
-from . import __version__
-from .resources import MissingDataError, add_scenario_argument
+from flocktrack import __version__
+from flocktrack.resources import MissingDataError, add_scenario_argument
 
 
 class _Lazy:
@@ -72,7 +72,7 @@ class _Parser(argparse.ArgumentParser):
 
 def cmd_scenarios(args) -> int:
     """The bundled scenarios, a line each; ``show NAME``: one of them as TOML (to start a new one from)."""
-    from .resources import UnknownScenarioError, scenario_description, scenario_file, scenario_names
+    from flocktrack.resources import UnknownScenarioError, scenario_description, scenario_file, scenario_names
 
     if args.action == "show":
         if not args.name:
@@ -121,10 +121,14 @@ def cmd_run(args) -> int:
         print(f"error: cannot write the results to {out}: {exc.strerror or exc}; give --out a directory you "
               f"can write", file=sys.stderr)
         return 2
-    from .run import run_inproc_to_dir, run_zenoh_to_dir
+    from flocktrack.engine.run import run_inproc_to_dir, run_zenoh_to_dir
 
     def report(summary: dict, info: dict) -> None:
         if info.get("rc") not in (0, None):
+            return
+        if "shard" in summary:
+            print(f"{sc.run.name}: host {summary['shard']} done in {info['wall_s']:.1f} s — its shard of the run is in "
+                  f"{out}/; one recording and summary of every host's: flocktrack merge DIR... --out DIR", flush=True)
             return
         print(f"{sc.run.name}: {sc.run.ticks} ticks in {info['wall_s']:.1f} s over {args.transport} — network RMSE "
               f"{_g(summary.get('network_rmse'))}, final {_g(summary.get('final_rmse'))}, "
@@ -135,7 +139,7 @@ def cmd_run(args) -> int:
         summary, info = run_inproc_to_dir(sc, data, out, record=args.record, show_progress=True)
         report(summary, info)
         return 0
-    from .runs import port_in_use
+    from flocktrack.launch.runs import port_in_use
 
     for port, flag in ((args.port, "--port"), (args.dashboard_port if args.dashboard else None, "--dashboard-port")):
         holder = port_in_use(port) if port else None
@@ -143,9 +147,28 @@ def cmd_run(args) -> int:
             print(f"error: port {port} is in use by {holder}; give {flag} with a free port (or stop it: "
                   f"`flocktrack ps` lists the runs)", file=sys.stderr)
             return 2
+    placement = None
+    if args.placement or args.host:
+        from flocktrack.plan import build_plan, load_placement
+
+        if not (args.placement and args.host):
+            print("error: --placement HOSTS.toml and --host NAME go together (which host of the placement this is)",
+                  file=sys.stderr)
+            return 2
+        if args.secure:
+            print("error: --secure with --placement: the secure mode runs on one host; drop --placement, or run "
+                  "the hosts without --secure", file=sys.stderr)
+            return 2
+        placement = load_placement(args.placement)
+        if args.host not in placement.host_names():
+            print(f"error: --host {args.host}: not a host of {args.placement} (its hosts: "
+                  f"{', '.join(placement.host_names())})", file=sys.stderr)
+            return 2
+        build_plan(sc, placement=placement, dashboard=args.dashboard)   # a placement that does not fit fails here
     if args.dashboard:
         print(f"dashboard: http{'s' if args.secure else ''}://localhost:{args.dashboard_port}", file=sys.stderr)
     summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
+                                     placement=placement, host=args.host, startup_timeout_s=args.startup_timeout,
                                      max_restarts=args.max_restarts, quiet=args.quiet, verbose=args.verbose,
                                      dashboard_port=args.dashboard_port if args.dashboard else None,
                                      keep_dashboard=args.dashboard and not args.no_linger,
@@ -158,7 +181,8 @@ def cmd_run(args) -> int:
 
 
 #: what a run may write to its directory, in the order the README's table gives them
-RUN_OUTPUTS = ("summary.json", "metrics.csv", "scenario.toml", "design.json", "meta.json", "run.json", "recording.mcap",
+RUN_OUTPUTS = ("summary.json", "metrics.csv", "scenario.toml", "design.json", "meta.json", "plan.json", "run.json",
+               "recording.mcap",
                "events.json", "logs/", "stats/", "dashboard_token")
 
 
@@ -173,12 +197,12 @@ def _g(v) -> str:
 
 def cmd_fault(args) -> int:
     """Send one control verb to a running flock (what the dashboard's buttons do), checked first, and
-    report the run's answer: exit 0 applied, 1 refused, 2 no answer (flocktrack/fault_client.py)."""
+    report the run's answer: exit 0 applied, 1 refused, 2 no answer (flocktrack/launch/fault_client.py)."""
     from agent.bus import ZenohBus
     from agent.wire import WireError, control_args
 
-    from . import fault_client as fc
-    from .runs import find_local
+    from flocktrack.launch import fault_client as fc
+    from flocktrack.launch.runs import find_local
 
     local = find_local(args.run) if args.connect is None else None
     try:
@@ -213,7 +237,7 @@ def cmd_fault(args) -> int:
 def _fault_target(args, local) -> tuple[str, str, str | None] | str:
     """(run, router endpoint, client config) to send a fault to, or why there is none: ``--run`` and
     ``--connect`` as given; ``--connect`` alone: the only run on that router; else a local run's file."""
-    from .runs import local_runs
+    from flocktrack.launch.runs import local_runs
 
     if args.connect is not None:
         return (args.run, args.connect, args.config) if args.run is not None else _only_run_on(args.connect, args.config)
@@ -230,7 +254,7 @@ def _fault_target(args, local) -> tuple[str, str, str | None] | str:
 def _only_run_on(connect: str, config: str | None) -> tuple[str, str, str | None] | str:
     """The only run whose members hold tokens on the router at ``connect`` (``flocktrack ps --connect``'s
     query), or why there is not exactly one."""
-    from .ps import runs_on
+    from flocktrack.launch.ps import runs_on
 
     try:
         names = sorted(runs_on(connect, config, listen_s=0.0))
@@ -246,7 +270,7 @@ def _only_run_on(connect: str, config: str | None) -> tuple[str, str, str | None
 
 def cmd_ps(args) -> int:
     """The runs reachable on a router (default: every run of this machine's launchers)."""
-    from .ps import as_json, discover, table
+    from flocktrack.launch.ps import as_json, discover, table
 
     runs, failed = discover(args.connect, args.config, args.run)
     for f in failed:
@@ -261,8 +285,8 @@ def cmd_ps(args) -> int:
 
 
 def cmd_recover(args) -> int:
-    """A complete MCAP file from one whose end is missing (flocktrack/record.py ``recover``)."""
-    from .record import recover
+    """A complete MCAP file from one whose end is missing (flocktrack/record/ ``recover``)."""
+    from flocktrack.record.reader import recover
 
     try:
         dst, rec = recover(args.recording, args.out)
@@ -276,7 +300,7 @@ def cmd_recover(args) -> int:
 
 
 def cmd_logs(args) -> int:
-    from .logs import LogsError, run_dir, show
+    from flocktrack.launch.logs import LogsError, run_dir, show
 
     try:
         return show(run_dir(args.run), args.member, follow=args.follow)
@@ -289,7 +313,7 @@ def cmd_design(args) -> int:
     """Solve (and store) the pre-run design of a scenario: its estimator's design hook (an SDP, a gain…)."""
     import json as _json
 
-    from .build import design as make_design
+    from flocktrack.engine.build import design as make_design
 
     sc = load_scenario(args.scenario, args.set or [])
     try:
@@ -313,7 +337,7 @@ def cmd_design(args) -> int:
 
 
 def cmd_metrics(args) -> int:
-    from .record import metrics_from_recording
+    from flocktrack.record.reader import metrics_from_recording
 
     s = metrics_from_recording(args.recording, args.out)
     print(f"{args.recording}: network RMSE {_g(s.get('network_rmse'))} over {s['ticks_seen']} ticks; wrote {args.out}/summary.json")
@@ -321,7 +345,7 @@ def cmd_metrics(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from .run import replay, replay_dashboard
+    from flocktrack.engine.run import replay, replay_dashboard
 
     if args.dashboard:
         return replay_dashboard(args.recording, args.dashboard_port)
@@ -351,6 +375,11 @@ def _add_run(sub) -> None:
     r.add_argument("--secure", action="store_true",
                    help="zenoh: TLS + mTLS + per-process passwords + router ACL (keys made in --keys DIR if absent)")
     r.add_argument("--keys", help="key set directory for --secure (default: OUT/keys)")
+    r.add_argument("--placement", metavar="HOSTS.toml",
+                   help="zenoh: a flock over several hosts (`flocktrack plan --placement` shows it); with --host")
+    r.add_argument("--host", help="with --placement: the host this command runs (its router, nodes and recorder)")
+    r.add_argument("--startup-timeout", type=float, default=90.0,
+                   help="seconds to wait for every host's members before giving up (exit 3)")
     r.add_argument("--ticks", type=int)
     r.add_argument("--seed", type=int)
     r.add_argument("--estimator", choices=_Lazy(estimator_names), metavar="NAME",
@@ -433,10 +462,15 @@ def parser() -> _Parser:
     dg.set_defaults(fn=cmd_design)
     _add_fault(sub)
     _add_inspection(sub)
-    from . import compose as _compose
-    from . import experiment as _experiment
-    from . import image as _image
-    from . import keys as _keys
+    from flocktrack.plan import cli as _plan
+    from flocktrack.record import merge as _merge
+
+    _plan.register(sub)
+    _merge.register(sub)
+    from flocktrack.deploy import compose as _compose
+    from flocktrack.experiment import sweep as _experiment
+    from flocktrack.deploy import image as _image
+    from flocktrack.deploy import keys as _keys
 
     _compose.register(sub)
     _image.register(sub)
@@ -456,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except ImportError as exc:        # an optional dependency that is not installed: which extra brings it
-        from .extras import missing_extra
+        from flocktrack.extras import missing_extra
 
         line = missing_extra(exc)
         if line is None:

@@ -9,7 +9,7 @@ namespaces, and with them every veth and the bridge, are deleted by :meth:`Netwo
 failure and at interpreter exit), after killing what still runs inside them.
 
 ``python tests/netns.py mesh-run SPEC.json`` is run *inside* the first host by the tests: it runs a
-scenario with :func:`flocktrack.run.run_zenoh_to_dir` and a :class:`flocktrack.secure.Mesh` whose other
+scenario with :func:`flocktrack.engine.run.run_zenoh_to_dir` and a :class:`flocktrack.deploy.mesh.Mesh` whose other
 hosts are reached with ``ip netns exec``, optionally cuts a host's link at a tick and heals it, and
 writes the timeline of what the first host saw (liveliness of every process, cut/heal instants).
 """
@@ -192,8 +192,8 @@ def mesh_run(spec_file: str) -> int:
     sys.path.insert(0, str(ROOT))
     from agent.scenario import parse_scenario
     from agent.scenario import scenario_data
-    from flocktrack.run import run_zenoh_to_dir
-    from flocktrack.secure import Host, Mesh
+    from flocktrack.engine.run import run_zenoh_to_dir
+    from flocktrack.deploy.mesh import Host, Mesh
 
     spec = json.loads(Path(spec_file).read_text())
     out = Path(spec["out"])

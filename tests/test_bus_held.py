@@ -16,7 +16,7 @@ import pytest
 
 from agent.bus import ZenohBus
 from agent.wire import Xchg
-from flocktrack.launch import free_port
+from flocktrack.launch.launcher import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture
 def router():
     port = free_port()
-    p = subprocess.Popen([sys.executable, "-m", "flocktrack.router", "--config", str(ROOT / "broker_cfg" / "compose_router.json5"),
+    p = subprocess.Popen([sys.executable, "-m", "flocktrack.launch.router", "--config", str(ROOT / "broker_cfg" / "compose_router.json5"),
                           "--listen", f"tcp/127.0.0.1:{port}"], cwd=str(ROOT), stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT, text=True)
     box: list[str] = []

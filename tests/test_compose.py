@@ -31,8 +31,9 @@ import yaml
 from agent.bus import ZenohBus
 from compose_schema import validate
 from agent.wire import Control
-from flocktrack import compose
-from flocktrack.launch import Launcher, RestartPolicy, free_port
+from flocktrack.deploy import compose
+from flocktrack.launch.launcher import Launcher, free_port
+from flocktrack.plan.model import RestartPolicy
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "scenarios" / "demo.toml"
@@ -144,13 +145,13 @@ def test_structure_of_the_demo_deployment(committed):
     assert svcs["router"]["expose"] == ["7447"]
 
     # health checks: a TCP probe of the router, the liveliness token of every other member
-    assert svcs["router"]["healthcheck"]["test"][:4] == ["CMD", "python", "-m", "flocktrack.health"]
+    assert svcs["router"]["healthcheck"]["test"][:4] == ["CMD", "python", "-m", "flocktrack.launch.health"]
     assert "--tcp" in svcs["router"]["healthcheck"]["test"]
     members = {"recorder": "recorder/0", "dashboard": "dashboard/0", "target": "target/0", "world": "world/0",
                **{f"sensor-{i}": f"agent/{i}" for i in range(n)}}
     for name, member in members.items():
         test = svcs[name]["healthcheck"]["test"]
-        assert test[:4] == ["CMD", "python", "-m", "flocktrack.health"], name
+        assert test[:4] == ["CMD", "python", "-m", "flocktrack.launch.health"], name
         assert test[test.index("--member") + 1] == member and test[test.index("--run") + 1] == run
         assert test[test.index("--connect") + 1] == "tcp/router:7447"
     assert "--http" in svcs["dashboard"]["healthcheck"]["test"]
@@ -247,7 +248,7 @@ def test_secure_compose_mounts_each_services_own_credentials_only(tmp_path):
     keys, out = tmp_path / "keys", tmp_path / "out"
     assert cli_main(["keys", str(DEMO), "--set", "sensors.n=3", "--out", str(keys)]) == 0
     # the bridge network's services dial "router": not in this key set's certificate → a precise refusal
-    from flocktrack.compose_keys import KeysError
+    from flocktrack.deploy.compose_keys import KeysError
 
     with pytest.raises(KeysError, match=r"not valid for 'router'.*--host router"):
         compose.stage(DEMO, out, keys, sets=["sensors.n=3"])
@@ -290,7 +291,7 @@ def test_secure_compose_mounts_each_services_own_credentials_only(tmp_path):
 def test_a_fusion_scenario_gets_its_fusion_service():
     """The UAV scenarios run the fusion solver as the launcher does (its plan's `fusion/0`); the world
     waits for it; a secure deployment of them is refused (no identity for it in `flocktrack keys`)."""
-    from flocktrack.compose_keys import KeysError
+    from flocktrack.deploy.compose_keys import KeysError
 
     scen = ROOT / "scenarios" / "carrillo_uav.toml"
     svcs = load(compose.render(scen, ROOT)["docker-compose.yml"])["services"]
@@ -447,7 +448,7 @@ def test_the_dashboards_logged_operator_link_names_the_port_a_user_opens(tmp_pat
 # ============================================================================ router and health processes
 
 def _start_router(port: int, *extra: str) -> subprocess.Popen:
-    p = subprocess.Popen([sys.executable, "-m", "flocktrack.router", "--config", str(ROUTER_CFG),
+    p = subprocess.Popen([sys.executable, "-m", "flocktrack.launch.router", "--config", str(ROUTER_CFG),
                           "--listen", f"tcp/127.0.0.1:{port}", *extra], cwd=str(ROOT), stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT, text=True)
     line = _readline(p, 60)
@@ -475,7 +476,7 @@ def _stop(p: subprocess.Popen, timeout: float = 15) -> int:
 
 
 def _health(*args: str, timeout: float = 30) -> int:
-    return subprocess.run([sys.executable, "-m", "flocktrack.health", *args], cwd=str(ROOT), timeout=timeout,
+    return subprocess.run([sys.executable, "-m", "flocktrack.launch.health", *args], cwd=str(ROOT), timeout=timeout,
                           capture_output=True).returncode
 
 
@@ -503,7 +504,7 @@ def test_router_process_carries_pubsub_and_stops_on_sigterm():
             a.close()
             b.close()
         # a second router cannot take the same port: exit 1, not a hang
-        dup = subprocess.run([sys.executable, "-m", "flocktrack.router", "--listen", ep], cwd=str(ROOT),
+        dup = subprocess.run([sys.executable, "-m", "flocktrack.launch.router", "--listen", ep], cwd=str(ROOT),
                              capture_output=True, text=True, timeout=60)
         assert dup.returncode == 1 and "cannot open" in dup.stderr
     finally:
@@ -576,7 +577,7 @@ def test_compose_services_run_as_processes(tmp_path, scenario_file):
     the config mounts and the volume → files under tmp_path. The run completes, every member's health
     check passes while it runs, and the recording scores exactly like the in-process engine."""
     from flocktrack.cli import main as cli_main
-    from flocktrack.record import metrics_from_recording
+    from flocktrack.record.reader import metrics_from_recording
 
     scen = ROOT / "scenarios" / scenario_file
     compose.write(compose.render(scen, tmp_path, mode="lockstep", sets=["run.ticks=40"]), tmp_path)

@@ -28,9 +28,10 @@ from pathlib import Path
 
 import pytest
 
-from flocktrack import compose, image
-from flocktrack.launch import free_port
-from flocktrack.record import read_recording
+from flocktrack.deploy import compose
+from flocktrack.deploy import image
+from flocktrack.launch.launcher import free_port
+from flocktrack.record.reader import read_recording
 
 import provision
 from docker_engine import Engine
@@ -201,7 +202,7 @@ def test_compose_up_secure_killed_sensor_is_restarted_and_rejoins(engine, built,
         assert len(pids) == 1, top
         os.kill(pids[0], signal.SIGKILL)
         # ... a client without the run's credentials is refused by the router (TLS, mTLS, password, ACL)
-        probe = subprocess.run([sys.executable, "-m", "flocktrack.health", "--quiet", "--timeout", "3", "--run", "demo",
+        probe = subprocess.run([sys.executable, "-m", "flocktrack.launch.health", "--quiet", "--timeout", "3", "--run", "demo",
                                 "--connect", ep, "--member", "world/0"], capture_output=True, text=True, timeout=60)
         assert probe.returncode == 1, probe.stderr
         assert proj.wait("world", 300) == 0, proj.logs("world")[-3000:]

@@ -11,8 +11,8 @@ import pytest
 from agent.bus import LocalBus
 from agent.scenario import load_scenario, parse_scenario
 from agent.scenario import scenario_data
-from flocktrack.record import read_recording
-from flocktrack.run import run_zenoh_to_dir
+from flocktrack.record.reader import read_recording
+from flocktrack.engine.run import run_zenoh_to_dir
 from topology.world import build_world
 
 from control_plan import ControlPlan

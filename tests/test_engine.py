@@ -11,7 +11,7 @@ from agent.bus import LocalBus
 from agent.estimators.minimax import CentralizedMinimax
 from agent.scenario import load_scenario
 from flocktrack.cli import main
-from flocktrack.inproc import run_inproc
+from flocktrack.engine.inproc import run_inproc
 
 SCEN = Path(__file__).resolve().parents[1] / "scenarios"
 

@@ -15,7 +15,7 @@ import toy_estimator
 from agent.estimators import registry
 from agent.estimators.base import Estimator, TickContext
 from agent.scenario import ScenarioError, load_scenario
-from flocktrack.build import design
+from flocktrack.engine.build import design
 from flocktrack.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]

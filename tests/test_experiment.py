@@ -14,7 +14,9 @@ import pytest
 
 from agent.scenario import ScenarioError
 from dashboards import sweep_plots as sp
-from flocktrack import experiment as ex
+from flocktrack.experiment import grid as gr
+from flocktrack.experiment import results
+from flocktrack.experiment import sweep as sw
 
 ROOT = Path(__file__).resolve().parents[1]
 NORMAL = str(ROOT / "scenarios" / "gu_hu_normal.toml")
@@ -29,17 +31,17 @@ def _rows(path: Path) -> list[dict]:
 # ---------------------------------------------------------------------------- parsing (no runs)
 
 def test_grid_parsing_shorthands_and_toml_values():
-    a = ex.parse_grid("estimator=kalman,minimax")
+    a = gr.parse_grid("estimator=kalman,minimax")
     assert (a.key, a.label, a.values) == ("estimator.name", "estimator", ("kalman", "minimax"))
     assert not a.numeric
-    r = ex.parse_grid("rounds=1,2,5")
+    r = gr.parse_grid("rounds=1,2,5")
     assert (r.key, r.values) == ("estimator.rounds", (1, 2, 5)) and r.numeric
-    f = ex.parse_grid("faults.link_loss=0,0.1,0.3,0.5")
+    f = gr.parse_grid("faults.link_loss=0,0.1,0.3,0.5")
     assert f.key == "faults.link_loss" and f.label == "link_loss" and f.values == (0, 0.1, 0.3, 0.5)
-    arr = ex.parse_grid("sensors.origin=[0, 0],[-16.0,-4.0]")
+    arr = gr.parse_grid("sensors.origin=[0, 0],[-16.0,-4.0]")
     assert arr.values == ([0, 0], [-16.0, -4.0])
-    assert ex.split_values('[1,2],"a,b",3') == ["[1,2]", '"a,b"', "3"]
-    assert ex.parse_grid("run.mode=true,false").values == (True, False)
+    assert gr.split_values('[1,2],"a,b",3') == ["[1,2]", '"a,b"', "3"]
+    assert gr.parse_grid("run.mode=true,false").values == (True, False)
 
 
 @pytest.mark.parametrize("spec, words", [
@@ -52,25 +54,25 @@ def test_grid_parsing_shorthands_and_toml_values():
 ])
 def test_grid_parsing_rejects(spec, words):
     with pytest.raises(ScenarioError, match=words):
-        ex.parse_grid(spec)
+        gr.parse_grid(spec)
 
 
 def test_run_ids_unique_and_readable():
-    axes = [ex.parse_grid("link_loss=0,0.1"), ex.parse_grid("sensors.origin=[0,0],[1,1]"),
-            ex.parse_grid("estimator=kalman,minimax")]
-    specs = ex.expand(axes, [0, 1, 2])
+    axes = [gr.parse_grid("link_loss=0,0.1"), gr.parse_grid("sensors.origin=[0,0],[1,1]"),
+            gr.parse_grid("estimator=kalman,minimax")]
+    specs = gr.expand(axes, [0, 1, 2])
     assert len(specs) == 2 * 2 * 2 * 3
     ids = [s.run_id for s in specs]
     assert len(set(ids)) == len(ids)
     assert all("/" not in i and " " not in i for i in ids)
-    assert ex.expand([ex.parse_grid("rounds=1,2")], [3])[0].run_id == "rounds-1_seed-3"
+    assert gr.expand([gr.parse_grid("rounds=1,2")], [3])[0].run_id == "rounds-1_seed-3"
 
 
 def test_scalar_metrics_flatten_summary():
     s = {"scenario": "x", "seed": 1, "n_sensors": 3, "network_rmse": 0.5, "final_rmse": None,
          "per_node_rmse": [0.1, 0.2, None], "tmsee": [1.0, 2.0, 3.0, 4.0], "faults": {"dropped": 7},
          "lambda2": [0.1, 0.2, 0.3]}
-    m = dict(ex.scalar_metrics(s))
+    m = dict(results.scalar_metrics(s))
     assert m["network_rmse"] == 0.5 and m["final_rmse"] is None
     assert m["per_node_rmse[0]"] == 0.1 and m["per_node_rmse[2]"] is None
     assert m["faults.dropped"] == 7.0
@@ -89,9 +91,9 @@ def test_mean_ci_and_log_decision():
 def test_register_adds_sweep_subcommand():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd")
-    ex.register(sub)
+    sw.register(sub)
     args = ap.parse_args(["sweep", NORMAL, "--grid", "rounds=1,2", "--seeds", "3", "--out", "x"])
-    assert args.fn is ex.cmd_sweep and args.seeds == [0, 1, 2] and args.grid == ["rounds=1,2"]
+    assert args.fn is sw.cmd_sweep and args.seeds == [0, 1, 2] and args.grid == ["rounds=1,2"]
 
 
 # ---------------------------------------------------------------------------- a real sweep
@@ -103,7 +105,7 @@ ARGS = [NORMAL, "--grid", "rounds=1,2", "--grid", "estimator=kalman,minimax", "-
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweep")
-    rc = ex.main([*ARGS, "--out", str(out)])
+    rc = sw.main([*ARGS, "--out", str(out)])
     return rc, out
 
 
@@ -184,7 +186,7 @@ def test_resume_skips_finished_runs(sweep):
     import shutil
 
     shutil.rmtree(out / "runs" / victim)
-    assert ex.main([*ARGS, "--out", str(out), "--no-figures", "--quiet"]) == 0
+    assert sw.main([*ARGS, "--out", str(out), "--no-figures", "--quiet"]) == 0
     meta = json.loads((out / "sweep.json").read_text())
     assert meta["executed"] == 1 and meta["resumed"] == 7
     after = {p.parent.name: p.stat().st_mtime_ns for p in (out / "runs").glob("*/summary.json")}
@@ -195,8 +197,8 @@ def test_resume_skips_finished_runs(sweep):
 
 def test_changed_scenario_reruns_instead_of_resuming(tmp_path):
     args = [NORMAL, "--grid", "rounds=1", "--seeds", "1", "--jobs", "1", "--no-figures", "--quiet"]
-    assert ex.main([*args, "--ticks", "10", "--out", str(tmp_path)]) == 0
-    assert ex.main([*args, "--ticks", "12", "--out", str(tmp_path)]) == 0
+    assert sw.main([*args, "--ticks", "10", "--out", str(tmp_path)]) == 0
+    assert sw.main([*args, "--ticks", "12", "--out", str(tmp_path)]) == 0
     meta = json.loads((tmp_path / "sweep.json").read_text())
     assert meta["rerun_stale"] == 1 and meta["resumed"] == 0
     s = json.loads((tmp_path / "runs" / "rounds-1_seed-0" / "summary.json").read_text())
@@ -208,23 +210,23 @@ def test_changed_scenario_reruns_instead_of_resuming(tmp_path):
 @pytest.mark.parametrize("grid, key", [("estimator.bogus=1,2", "[estimator.bogus] unknown key"),
                                        ("nosuch.key=1,2", "[nosuch] unknown table")])
 def test_bad_grid_key_fails_fast_with_the_scenario_error(tmp_path, capsys, grid, key):
-    rc = ex.main([NORMAL, "--grid", grid, "--seeds", "2", "--ticks", "10", "--out", str(tmp_path / "o")])
+    rc = sw.main([NORMAL, "--grid", grid, "--seeds", "2", "--ticks", "10", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and key in err and "gu_hu_normal.toml" in err and "fix:" in err
     assert not (tmp_path / "o").exists()  # nothing ran, nothing written
-    cfg = ex.SweepConfig(NORMAL, [ex.parse_grid(grid)], [0], tmp_path / "o2")
+    cfg = sw.SweepConfig(NORMAL, [gr.parse_grid(grid)], [0], tmp_path / "o2")
     with pytest.raises(ScenarioError) as ei:
-        ex.run_sweep(cfg)
+        sw.run_sweep(cfg)
     assert key in str(ei.value)
 
 
 def test_bad_set_fails_fast(tmp_path, capsys):
-    rc = ex.main([NORMAL, "--grid", "rounds=1,2", "--set", "run.T=-1", "--seeds", "1", "--out", str(tmp_path / "o")])
+    rc = sw.main([NORMAL, "--grid", "rounds=1,2", "--set", "run.T=-1", "--seeds", "1", "--out", str(tmp_path / "o")])
     assert rc == 2 and "[run.T]" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
 def test_bad_value_in_one_cell_is_recorded_not_fatal(tmp_path, capsys):
-    rc = ex.main([NORMAL, "--grid", "rounds=-1,1", "--seeds", "2", "--ticks", "15", "--jobs", "2", "--no-figures",
+    rc = sw.main([NORMAL, "--grid", "rounds=-1,1", "--seeds", "2", "--ticks", "15", "--jobs", "2", "--no-figures",
                   "--out", str(tmp_path)])
     err = capsys.readouterr().err
     assert rc == 1 and "[estimator.rounds] must be ≥ 0, got -1" in err
@@ -240,7 +242,7 @@ def test_bad_value_in_one_cell_is_recorded_not_fatal(tmp_path, capsys):
 
 
 def test_worker_error_is_returned_not_raised(tmp_path):
-    res = ex._execute({"run_id": "x", "dir": str(tmp_path / "x"), "data": {"run": {}}, "source": "s.toml"})
+    res = sw._execute({"run_id": "x", "dir": str(tmp_path / "x"), "data": {"run": {}}, "source": "s.toml"})
     assert res["status"] == "failed" and "table is required" in res["error"]
     assert not (tmp_path / "x").exists() and not (tmp_path / ".x.tmp").exists()
 
@@ -248,7 +250,7 @@ def test_worker_error_is_returned_not_raised(tmp_path):
 # ---------------------------------------------------------------------------- the fault key
 
 def test_link_loss_is_a_grid_key(tmp_path):
-    rc = ex.main([NORMAL, "--grid", "faults.link_loss=0,0.6", "--seeds", "1", "--ticks", "20", "--jobs", "1",
+    rc = sw.main([NORMAL, "--grid", "faults.link_loss=0,0.6", "--seeds", "1", "--ticks", "20", "--jobs", "1",
                   "--no-figures", "--quiet", "--out", str(tmp_path)])
     assert rc == 0
     rows = {(r["faults.link_loss"], r["metric"]): float(r["value"]) for r in _rows(tmp_path / "results.csv")
@@ -258,7 +260,7 @@ def test_link_loss_is_a_grid_key(tmp_path):
 
 def test_array_and_string_grid_values(tmp_path):
     """Array values (unhashable lists) and a categorical first key go through runs, CSV and figures."""
-    rc = ex.main([NORMAL, "--grid", "estimator=kalman,minimax", "--grid", "sensors.origin=[-16.0,-4.0],[-12.0,-4.0]",
+    rc = sw.main([NORMAL, "--grid", "estimator=kalman,minimax", "--grid", "sensors.origin=[-16.0,-4.0],[-12.0,-4.0]",
                   "--seeds", "1", "--ticks", "10", "--jobs", "1", "--quiet", "--out", str(tmp_path)])
     assert rc == 0
     rows = _rows(tmp_path / "results.csv")

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from flocktrack.cli import main
-from flocktrack.record import read_recording
+from flocktrack.record.reader import read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -159,7 +159,7 @@ def test_logs_follow_a_growing_log_until_the_run_is_over(tmp_path):
     import io
     import threading
 
-    from flocktrack.logs import show
+    from flocktrack.launch.logs import show
 
     logs = tmp_path / "logs"
     logs.mkdir()

@@ -10,7 +10,7 @@ import time
 import pytest
 
 from agent.wire import CONTROL_VERBS, command
-from flocktrack import fault_client as fc
+from flocktrack.launch import fault_client as fc
 from flocktrack.cli import main
 
 #: a valid call of every verb (for a flock of 2)
@@ -52,11 +52,11 @@ def test_connect_without_run_names_the_runs_when_the_router_has_several(tmp_path
     import sys
 
     from agent.bus import ZenohBus
-    from flocktrack.launch import free_port
+    from flocktrack.launch.launcher import free_port
 
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
-    router = subprocess.Popen([sys.executable, "-m", "flocktrack.router", "--listen", ep], stdout=subprocess.PIPE,
+    router = subprocess.Popen([sys.executable, "-m", "flocktrack.launch.router", "--listen", ep], stdout=subprocess.PIPE,
                               text=True)
     buses = []
     try:

@@ -11,8 +11,8 @@ import pytest
 
 from agent.scenario import ScenarioError, parse_scenario
 from agent.scenario import scenario_data
-from flocktrack.record import read_recording
-from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir
+from flocktrack.record.reader import read_recording
+from flocktrack.engine.run import run_inproc_to_dir, run_zenoh_to_dir
 
 SCEN = Path(__file__).resolve().parents[1] / "scenarios"
 
@@ -234,7 +234,7 @@ def test_one_byzantine_sensor_ruins_plain_consensus_not_the_resilient_one(tmp_pa
 def test_delay_in_ms_changes_nothing_in_lockstep_inproc(tmp_path):
     """Lockstep waits for every payload: a wall-clock delay (with jitter) on every link only holds
     payloads back, so the estimates are bit-identical to the run without it."""
-    from flocktrack.inproc import run_inproc
+    from flocktrack.engine.inproc import run_inproc
 
     plan = [{"kind": "delay", "targets": "all", "delay_ms": 20.0, "jitter_ms": 15.0, "start": 5, "heal": 25}]
     _, base = _scenario("gu_hu_normal.toml", [], **{"run.ticks": 40})
@@ -248,7 +248,7 @@ def test_delay_in_ms_changes_nothing_in_lockstep_inproc(tmp_path):
 
 
 def test_delay_in_ticks_with_jitter_spreads_the_lateness():
-    from flocktrack.inproc import run_inproc
+    from flocktrack.engine.inproc import run_inproc
 
     def counters(jitter):
         plan = [{"kind": "delay", "targets": "agents:2", "direction": "in", "delay_ticks": 1,

@@ -1,4 +1,4 @@
-"""The launcher forks its Python children from a pre-imported template (flocktrack/forkserver.py): the same
+"""The launcher forks its Python children from a pre-imported template (flocktrack/launch/forkserver.py): the same
 run, lockstep, gives the same numbers bit for bit whether every process is forked from the template or is
 a fresh interpreter (``FLOCKTRACK_FORKSERVER=0``), a forked child's exit code and output reach the
 launcher as a fresh one's do, and the forked flock is up sooner."""
@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from flocktrack.forkserver import ForkedProcess, forkable
+from flocktrack.launch.forkserver import ForkedProcess, forkable
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -58,7 +58,7 @@ def test_distributed_fusion_over_zenoh_equals_inproc(tmp_path):
         assert st["role"].get("dropped_links", 0) == 0
     # the dashboard's model of the recording draws both UAVs' estimates and the central one
     from dashboards.state import DashboardState, RunInfo
-    from flocktrack.record import read_recording
+    from flocktrack.record.reader import read_recording
 
     ds = DashboardState(RunInfo(n=2))
     for key, msg, t in read_recording(tmp_path / "z" / "recording.mcap").messages:
@@ -75,8 +75,8 @@ def test_distributed_fusion_keeps_estimating_through_a_killed_uav_and_agrees_aga
     round 0 and from then on the two publish the same estimates."""
     from agent.scenario import parse_scenario, scenario_data
     from control_plan import ControlPlan
-    from flocktrack.record import read_recording
-    from flocktrack.run import run_zenoh_to_dir
+    from flocktrack.record.reader import read_recording
+    from flocktrack.engine.run import run_zenoh_to_dir
 
     # 800 ticks: in lockstep the world runs on without the dead UAV, so the restarted process rejoins after
     # as many ticks as its start-up takes at the world's pace: 56–162 ticks here with two copies of this test

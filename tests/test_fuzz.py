@@ -16,7 +16,7 @@ import pytest
 
 from agent import wire
 from agent.bus import ZenohBus
-from flocktrack.launch import free_port, open_router
+from flocktrack.launch.launcher import free_port, open_router
 
 ROOT = Path(__file__).resolve().parents[1]
 N_MESSAGES = 100_000

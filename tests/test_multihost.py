@@ -15,9 +15,9 @@ import pytest
 
 from agent.scenario import parse_scenario
 from agent.scenario import scenario_data
-from flocktrack.record import read_recording
-from flocktrack.run import run_inproc_to_dir
-from flocktrack.secure import mesh_configs
+from flocktrack.record.reader import read_recording
+from flocktrack.engine.run import run_inproc_to_dir
+from flocktrack.deploy.mesh import mesh_configs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import netns

@@ -121,7 +121,7 @@ def test_fault_kind_did_you_mean():
 
 
 def test_only_warnings_errors_and_tracebacks_reach_the_terminal_without_v():
-    from flocktrack.launch import worth_showing
+    from flocktrack.launch.launcher import worth_showing
 
     lines = ["INFO agent.runner: agent/7: deadline on (93, 0)\n", "WARNING agent.runner: agent/7: starting without\n",
              "Traceback (most recent call last):\n", '  File "x.py", line 1, in <module>\n', "ValueError: boom\n",
@@ -142,7 +142,7 @@ def test_results_are_written_when_the_run_ends_while_the_dashboard_stays_up(tmp_
     import threading
     import time
 
-    from flocktrack.launch import free_port
+    from flocktrack.launch.launcher import free_port
 
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "flocktrack", "run", str(ROOT / "scenarios" / "demo.toml"),

@@ -12,7 +12,8 @@ import time
 import pytest
 
 from flocktrack.cli import main
-from flocktrack.record import FLUSH_S, read_recording
+from flocktrack.record.writer import FLUSH_S
+from flocktrack.record.reader import read_recording
 
 from conftest import ROOT
 
@@ -80,7 +81,7 @@ def test_a_long_recording_keeps_half_a_kilobyte_per_chunk_and_every_index(tmp_pa
     from mcap.reader import make_reader
 
     from agent.wire import Estimate
-    from flocktrack.record import McapRecorder
+    from flocktrack.record.writer import McapRecorder
 
     path = tmp_path / "long.mcap"
     rec = McapRecorder(path, {"scenario": ""})

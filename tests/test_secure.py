@@ -20,10 +20,10 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from agent.scenario import parse_scenario
 from agent import wire
 from agent.scenario import scenario_data
-from flocktrack.keys import acl, identities, issue, load_keys, make_ca, make_keys, register, cert_pem, key_pem
-from flocktrack.launch import free_port, open_router
-from flocktrack.record import read_recording
-from flocktrack.run import run_inproc_to_dir, run_zenoh_to_dir
+from flocktrack.deploy.keys import acl, identities, issue, load_keys, make_ca, make_keys, register, cert_pem, key_pem
+from flocktrack.launch.launcher import free_port, open_router
+from flocktrack.record.reader import read_recording
+from flocktrack.engine.run import run_inproc_to_dir, run_zenoh_to_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "scenarios"

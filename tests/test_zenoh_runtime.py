@@ -14,8 +14,8 @@ from agent import wire
 from agent.bus import ZenohBus
 from agent.scenario import scenario_data
 from flocktrack.cli import main
-from flocktrack.record import read_recording
-from flocktrack.run import run_zenoh_to_dir
+from flocktrack.record.reader import read_recording
+from flocktrack.engine.run import run_zenoh_to_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "scenarios"

@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from agent.bus import Bus
+from agent.ports import Ports
 from agent.roles.common import Role
 from agent.seeding import rng_for
 from agent.wire import (Command, Control, End, HealFault, Inject, LinkEdit, LinkLoss, Message, Partition, Speed, State,
@@ -74,6 +75,10 @@ WORLD_VERBS = frozenset({"pause", "resume", "step", "speed", "link_drop", "link_
 
 class WorldRole(Role):
     name = "world"
+    #: the clock and the link table, the fault plan's events, the end; what it reads: the states that close a
+    #: tick, the control plane and the launcher's acknowledgements of process faults
+    PORTS = Ports(writes=("world/tick", "world/event", "world/end"),
+                  reads=("agent/*/state", "target/state", "control/**", "launcher/event"))
 
     def __init__(self, n: int, ticks: int, T: float, positions0: np.ndarray, target_pos0: np.ndarray,
                  schedule: PeriodicSchedule | None = None, radius: float = np.inf,

@@ -6,18 +6,25 @@ from __future__ import annotations
 from collections import Counter
 
 from ..bus import Bus
+from ..ports import Ports
 from ..wire import Control, FaultEvent, Message, WireError, encode, fault_event
 
 
 class Role:
-    """Base class of the message-driven roles."""
+    """Base class of the message-driven roles. ``PORTS``: what the role writes and reads (:mod:`agent.ports`),
+    declared by each role next to its code."""
 
     name = "role"
+    PORTS = Ports()
 
     def __init__(self, ticks: int):
         self.ticks = int(ticks)
         self.bus: Bus | None = None
         self.counters: Counter = Counter()
+
+    def ports(self) -> Ports:
+        """This node's ports (``{i}`` = its id)."""
+        return self.PORTS.of(getattr(self, "i", 0))
 
     def attach(self, bus: Bus) -> None:
         self.bus = bus

@@ -20,12 +20,14 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from ..bus import Bus
+from ..ports import Ports
 from ..wire import End, Estimate, Meas, Message, Tick
 from .common import Role
 
 
 class FusionRole(Role):
     name = "fusion"
+    PORTS = Ports(writes=("fusion/estimate",), reads=("agent/*/meas", "world/tick", "world/end"))
 
     def __init__(self, ticks: int, estimators: Mapping[str, object], to_record: Callable[[Meas], object]):
         super().__init__(ticks)

@@ -29,6 +29,7 @@ from ..bus import Bus
 from ..estimators.base import Estimator, TickContext
 from ..link_emulation import LinkEmulator, noise_factor
 from ..models import LinearSensor, integrate_double_integrator
+from ..ports import Ports
 from ..wire import (Control, Estimate, FaultEvent, Meas, Message, State, Tick, Truth, WireError, Xchg, command,
                     estimate_inbox, estimate_key, inbox, xchg_key)
 from .common import Role
@@ -40,6 +41,13 @@ log = logging.getLogger(__name__)
 
 class SensorRole(Role):
     name = "sensor"
+    #: its measurement, estimate, state and exchange payloads (one for observers, one per neighbour that
+    #: hears it, and its last estimate handed to a rejoining peer); the tick, the truth, the fault events,
+    #: its own inbox and a rejoin's handovers
+    PORTS = Ports(writes=("agent/{i}/meas", "agent/{i}/estimate", "agent/{i}/state", "agent/{i}/xchg",
+                          "agent/{i}/to/*/xchg", "agent/{i}/to/*/estimate"),
+                  reads=("world/tick", "target/truth", "agent/*/to/{i}/xchg", "agent/*/to/{i}/estimate",
+                         "control/outlier_burst", "world/event"))
 
     def __init__(self, i: int, ticks: int, T: float, estimator: Estimator, sensor: LinearSensor,
                  rng: np.random.Generator, q0: np.ndarray, p0: np.ndarray | None = None,

@@ -14,12 +14,16 @@ from collections import Counter
 import numpy as np
 
 from ..bus import Bus
+from ..ports import Ports
 from ..wire import Estimate, FaultEvent, Message, State, Tick, Truth
 from .common import Role
 
 
 class TargetRole(Role):
     name = "target"
+    #: the truth (for the sensors to measure) and its state (for the world); an intelligent target reads the
+    #: estimates it evades
+    PORTS = Ports(writes=("target/truth", "target/state"), reads=("world/tick", "world/event", "agent/*/estimate"))
 
     def __init__(self, ticks: int, model, intelligent: bool, pos_dims: int, estimate_source: str = "mean",
                  T: float | None = None):

@@ -16,6 +16,7 @@ from collections import Counter
 import numpy as np
 
 from ..bus import Bus
+from ..ports import Ports
 from ..estimators.relative_measurement import RelativeMeasurement
 from ..wire import Meas, Message, State, Tick, Truth
 from .common import Role
@@ -53,6 +54,7 @@ class UavTrack:
 
 class UavRole(Role):
     name = "uav"
+    PORTS = Ports(writes=("agent/{i}/meas", "agent/{i}/state"), reads=("world/tick",))
 
     def __init__(self, i: int, ticks: int, T: float, stream):
         super().__init__(ticks)

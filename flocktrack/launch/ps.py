@@ -4,7 +4,7 @@ A run is the set of tokens ``ft/<run>/alive/<member>`` (every role, the recorder
 dashboard declare one); the sensors alive are its ``agent/<i>`` tokens. Its tick is the newest
 ``ft/<run>/world/tick`` heard in a short listen, and that tick's ``n`` (its ``alive`` list has one entry
 per sensor) the flock's size. Without ``--connect``, every run of this machine's launchers
-(flocktrack/runs.py) is asked on its own router; those files also give the mode and the run directory,
+(flocktrack/launch/runs.py) is asked on its own router; those files also give the mode and the run directory,
 which nothing on a router tells (a run heard only through ``--connect`` shows mode ``?``, and its size
 ``?`` if it ticked nothing during the listen).
 """
@@ -15,7 +15,7 @@ import json
 import time
 from dataclasses import dataclass, field
 
-from .runs import LocalRun, local_runs
+from flocktrack.launch.runs import LocalRun, local_runs
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""A standalone Zenoh router process: ``python -m flocktrack.router [--config FILE] [--listen EP[,EP]]``.
+"""A standalone Zenoh router process: ``python -m flocktrack.launch.router [--config FILE] [--listen EP[,EP]]``.
 
 ``flocktrack run`` opens its router inside the launcher process (``launch.open_router``); a deployment
 of separate containers or hosts needs the router as a process of its own, and this is it — the same
@@ -18,7 +18,7 @@ import threading
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m flocktrack.router", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m flocktrack.launch.router", description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", default=None, help="Zenoh json5 config file, or the name of one in the package's "
                                                    "broker_cfg/ (router mode is forced)")
     ap.add_argument("--listen", default=None,
@@ -31,8 +31,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import zenoh
 
-    from .health import zenoh_config  # = agent.bus.zenoh_config, without importing numpy
-    from .resources import MissingDataError, config_file
+    from flocktrack.launch.health import zenoh_config  # = agent.bus.zenoh_config, without importing numpy
+    from flocktrack.resources import MissingDataError, config_file
 
     zenoh.init_log_from_env_or("error")
     try:

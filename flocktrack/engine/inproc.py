@@ -12,8 +12,8 @@ from collections.abc import Callable
 from agent.bus import LocalBus
 from agent.scenario import Scenario
 
-from .build import Roles, build_roles
-from .metrics import MetricsCollector
+from flocktrack.engine.build import Roles, build_roles
+from flocktrack.record.metrics import MetricsCollector
 
 
 def run_inproc(sc: Scenario, progress: Callable[[int, int], None] | None = None,

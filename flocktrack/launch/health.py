@@ -1,4 +1,4 @@
-"""Health probes for containers: ``python -m flocktrack.health CHECK ...`` exits 0 when every check
+"""Health probes for containers: ``python -m flocktrack.launch.health CHECK ...`` exits 0 when every check
 passes and 1 otherwise (one line on stderr says which check failed). The docker-compose file uses it
 as the ``healthcheck`` of every service; it is also handy by hand.
 
@@ -86,7 +86,7 @@ def alive_members(run: str, connect: str, names: list[str], timeout: float, conf
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m flocktrack.health", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m flocktrack.launch.health", description=__doc__.split("\n\n")[0])
     ap.add_argument("--tcp", action="append", default=[], metavar="HOST:PORT", help="a TCP port accepts connections")
     ap.add_argument("--member", action="append", default=[], metavar="NAME",
                     help="the liveliness token ft/<run>/alive/NAME is present (needs --run, --connect)")

@@ -2,7 +2,7 @@
 line tagged with its process; ``-f`` follows them live (``dora logs``, ``docker compose logs -f``) until
 Ctrl-C, or until the run has ended and its files stop growing.
 
-RUN is a run directory, or the name of a run of this machine's launchers (flocktrack/runs.py); without
+RUN is a run directory, or the name of a run of this machine's launchers (flocktrack/launch/runs.py); without
 it, the only such run.
 """
 
@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from .runs import find_local, local_runs
+from flocktrack.launch.runs import find_local, local_runs
 
 
 class LogsError(ValueError):

@@ -36,7 +36,7 @@ from multiprocessing import reduction
 
 #: imported once by the server, before any fork (what every role's process imports at start)
 PRELOAD = ["numpy", "scipy.linalg", "msgpack", "zenoh", "agent.bus", "agent.wire", "agent.scenario", "agent.assemble",
-           "agent.runner", "agent.estimators.minimax", "topology.world", "flocktrack.record"]
+           "agent.runner", "agent.estimators.minimax", "topology.world", "flocktrack.record.recorder"]
 
 
 def die_with_parent() -> None:

@@ -10,7 +10,7 @@ writes ``DIR/docker-compose.yml``, ``DIR/Dockerfile`` and the run's inputs ``DIR
 the processes ``flocktrack run`` spawns (``launch.Launcher.plan``), one container each, talking through
 one Zenoh router container:
 
-* ``router``      ``python -m flocktrack.router --config …/compose_router.json5`` (the launcher's embedded router)
+* ``router``      ``python -m flocktrack.launch.router --config …/compose_router.json5`` (the launcher's embedded router)
 * ``recorder``    ``python -m flocktrack.record --out /data/recording.mcap …``    (``recorder/0``)
 * ``dashboard``   ``python -m dashboards --port 8080 --host 0.0.0.0 …``          (``dashboard/0``)
 * ``target``      ``python -m agent target …``                                  (``target/0``)
@@ -33,7 +33,7 @@ Every agent connects to ``tcp/router:7447`` and runs under the scenario's run na
 directory as the recorder's ``/data`` (recording.mcap, summary.json, metrics.csv) instead of the named
 volume. ``--secure --keys DIR`` (a key set of ``flocktrack keys``) runs every service with its own Zenoh
 identity over TLS + mTLS + password with the router's ACL: each service mounts only its own directory
-``compose/keys/<identity>/`` (:mod:`flocktrack.compose_keys`). With ``--data`` or ``--secure`` the
+``compose/keys/<identity>/`` (:mod:`flocktrack.deploy.compose_keys`). With ``--data`` or ``--secure`` the
 services run as the user who generated the file (``--user`` to choose): the host files they read or
 write are that user's. The resolved scenario, the pre-run design and the recorder's metadata — the same three
 files ``flocktrack run`` writes (``run.write_inputs``) — are written to ``DIR/compose/`` and declared as
@@ -45,11 +45,11 @@ The output validates against the Compose Specification's JSON schema as shipped 
 specification: hence no top-level ``name:`` (the project name is the directory's, or
 ``COMPOSE_PROJECT_NAME`` / ``docker compose -p``) and no inline ``configs.<x>.content``.
 
-Restart policies map one to one onto the launcher's :class:`~flocktrack.launch.RestartPolicy`
+Restart policies map one to one onto the launcher's :class:`~flocktrack.launch.launcher.RestartPolicy`
 (:func:`docker_restart`): ``never`` ↔ ``restart: "no"``, ``on-failure`` with ``max_restarts`` N ↔
 ``restart: on-failure:N``; as in the launcher, a restarted sensor rejoins the running flock
 (``--rejoin``, detected by a marker file the first start leaves in the container). Health checks use
-``python -m flocktrack.health`` (:mod:`flocktrack.health`): a TCP probe of the router, the Zenoh
+``python -m flocktrack.launch.health`` (:mod:`flocktrack.launch.health`): a TCP probe of the router, the Zenoh
 liveliness token of every other member — the membership the world itself goes by. See docs/deploy.md.
 """
 
@@ -69,10 +69,10 @@ from typing import Any
 
 import yaml
 
-from . import __version__
-from .compose_keys import KEYS_MOUNT, KeysError, check_keys, stage_keys
-from .launch import RestartPolicy
-from .resources import add_scenario_argument
+from flocktrack import __version__
+from flocktrack.deploy.compose_keys import KEYS_MOUNT, KeysError, check_keys, stage_keys
+from flocktrack.plan.model import RestartPolicy
+from flocktrack.resources import add_scenario_argument
 
 ROUTER_PORT = 7447
 APP_DIR = "/app"                       # WORKDIR of the image: the project's sources (no tests)
@@ -80,10 +80,11 @@ VENV_DIR = "/opt/flocktrack"           # the image's virtual environment (on PAT
 CONF_DIR = "/etc/flocktrack"           # where the configs appear in the containers
 DATA_DIR = "/data"                     # the recorder's named volume
 DASHBOARD_PORT = 8080                  # the dashboard's port inside its container
-ROUTER_CONFIG = "compose_router.json5"  # shipped in the package's broker_cfg/ (python -m flocktrack.router --config)
+ROUTER_CONFIG = "compose_router.json5"  # shipped in the package's broker_cfg/ (python -m flocktrack.launch.router --config)
 RESTART_MARKER = "/tmp/.flocktrack-started"   # in the container's own filesystem: survives a restart
 STOP_GRACE = "5s"                      # the launcher's shutdown grace (Launcher.shutdown grace_s)
 DEFAULT_IMAGE = "flocktrack:local"
+ROUTER_SERVICE = "router-0"            # the one host's router node (router/0), dialled by its service name
 STARTUP_TIMEOUT_S = 300                # the world's start barrier: containers start slower than processes
 
 # health-check timings. The member probe costs ~0.2 s of CPU: rare enough for 15 containers on 2 cores.
@@ -100,13 +101,17 @@ def docker_restart(policy: RestartPolicy) -> str:
         return "no"
     if policy.mode == "on-failure":
         return f"on-failure:{int(policy.max_restarts)}"
-    raise ValueError(f"unknown restart policy {policy.mode!r} (never | on-failure)")
+    if policy.mode == "always":
+        return "unless-stopped"
+    raise ValueError(f"unknown restart policy {policy.mode!r} (never | on-failure | always)")
 
 
 def runtime_policy(restart: str) -> RestartPolicy:
     """The launcher restart policy a Compose ``restart`` value stands for (``no``, ``on-failure[:N]``)."""
     if restart == "no":
         return RestartPolicy("never")
+    if restart == "unless-stopped":
+        return RestartPolicy("always")
     m = re.fullmatch(r"on-failure(?::(\d+))?", restart)
     if m is None:
         raise ValueError(f"restart {restart!r} has no launcher counterpart (no | on-failure[:N])")
@@ -137,7 +142,7 @@ def run_inputs(sc, data: dict, scenario_label: str) -> dict[str, str]:
     """The texts of ``scenario.toml``, ``design.json`` and ``meta.json`` exactly as ``flocktrack run``
     writes them (``run.write_inputs``); the meta's ``scenario_path`` is ``scenario_label`` (a path
     relative to the project, so the output does not depend on where it was generated)."""
-    from .run import write_inputs
+    from flocktrack.engine.run import write_inputs
 
     with tempfile.TemporaryDirectory() as td:
         scen, design, _, meta = write_inputs(sc, data, Path(td))
@@ -148,7 +153,7 @@ def run_inputs(sc, data: dict, scenario_label: str) -> dict[str, str]:
     return texts
 
 
-CONFIG_FILES = {"scenario": "scenario.toml", "design": "design.json", "meta": "meta.json"}
+CONFIG_FILES = {"scenario": "scenario.toml", "design": "design.json", "meta": "meta.json", "plan": "plan.json"}
 INPUTS_DIR = "compose"                 # the run's inputs, beside the compose file: DIR/compose/<file>
 
 
@@ -166,12 +171,12 @@ def _mounts(*names: str) -> list[dict]:
 
 
 def _health(test: list[str], config: list[str], timing: dict) -> dict:
-    return {"test": ["CMD", "python", "-m", "flocktrack.health", "--quiet", *test, *config], **timing}
+    return {"test": ["CMD", "python", "-m", "flocktrack.launch.health", "--quiet", *test, *config], **timing}
 
 
 def router_host(opts: ComposeOptions) -> str:
     """The name every service dials the router by (also what its certificate must cover when secure)."""
-    return "127.0.0.1" if opts.network == "host" else "router"
+    return "127.0.0.1" if opts.network == "host" else ROUTER_SERVICE
 
 
 def endpoint(opts: ComposeOptions) -> str:
@@ -221,7 +226,7 @@ class Deployment:
         return build
 
     def member_health(self, member: str, extra: list[str] = ()) -> dict:
-        """Healthy while ``member``'s liveliness token is on the router (:mod:`flocktrack.health`)."""
+        """Healthy while ``member``'s liveliness token is on the router (:mod:`flocktrack.launch.health`)."""
         return _health(["--run", self.run, "--connect", endpoint(self.opts), "--member", member, *extra], self.zconf,
                        MEMBER_HEALTH)
 
@@ -237,7 +242,7 @@ class Deployment:
         if configs:
             s["configs"] = configs
         vols = list(extra.pop("volumes", []))
-        if opts.secure:    # its own credentials only (flocktrack.compose_keys.stage_keys)
+        if opts.secure:    # its own credentials only (flocktrack.deploy.compose_keys.stage_keys)
             vols.append(f"./{INPUTS_DIR}/keys/{ident}:{KEYS_MOUNT}:ro")
         if vols:
             s["volumes"] = vols
@@ -250,115 +255,107 @@ class Deployment:
         return s
 
 
-AFTER_ROUTER = {"router": "service_healthy"}
-AFTER_RECORDER = {"router": "service_healthy", "recorder": "service_started"}
+def compose_plan(sc, opts: ComposeOptions, placement=None):
+    """The run plan a deployment runs: no launcher (Docker supervises), a recorder and a dashboard."""
+    from flocktrack.plan import build_plan
+
+    return build_plan(sc, placement=placement, supervisor=False, dashboard=True,
+                      sensor_restart=RestartPolicy(opts.restart, opts.max_restarts))
 
 
-def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str) -> dict:
-    """The docker-compose document (a plain dict; ``$`` not yet escaped — see :func:`to_yaml`). The run's
-    inputs are configs read from the files :func:`input_path` names, relative to the compose file."""
+def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str, plan=None, host: str | None = None) -> dict:
+    """The docker-compose document (a plain dict; ``$`` not yet escaped — see :func:`to_yaml`): one service
+    per node of the run plan on ``host`` (default: the plan's first), named as the node (``agent/3`` →
+    ``agent-3``). The run's inputs are configs read from the files :func:`input_path` names, relative to the
+    compose file."""
     if opts.network not in ("bridge", "host"):
         raise ValueError(f"--network {opts.network!r}: bridge | host")
-    from agent.assemble import extra_processes
-
-    extra = extra_processes(sc)          # e.g. the fusion solver of the UAV scenarios, as the launcher's plan
-    if extra and opts.secure:
-        raise KeysError(f"{scenario_label}: a secure deployment of a scenario with {', '.join(extra)} is not supported "
-                        f"(no identity or ACL rules for it in `flocktrack keys`); deploy it without --secure")
-    d = Deployment(opts, sc.run.name, mode)
-    n = sc.sensors.n
-    services = {"router": router_service(d), "recorder": recorder_service(d), "dashboard": dashboard_service(d),
-                **agent_services(d, n, extra), "world": world_service(d, n, extra)}
+    plan = plan or compose_plan(sc, opts)
+    host = host or plan.hosts[0].name
+    d = Deployment(opts, plan.run, mode)
+    nodes = plan.on(host)
+    router = next(n for n in nodes if n.kind == "router")
+    services = {router.slug: router_service(d, router, plan)}
+    recorder = next((n.slug for n in nodes if n.kind == "recorder"), None)
+    flock = [n for n in nodes if n.kind != "router"]
+    for n in flock:
+        after = {router.slug: "service_healthy"}
+        if n.kind in ("agent", "target", "world") or n.kind not in ("recorder", "dashboard"):
+            if recorder:
+                after[recorder] = "service_started"
+        if n.kind == "world":
+            after.update({m.slug: "service_started" for m in flock if m.kind not in ("world", "recorder", "dashboard")})
+        services[n.slug] = node_service(d, n, router.slug, after, summary=not plan.multi_host)
     doc = {
-        "x-flocktrack": {"run": d.run, "scenario": scenario_label, "sensors": n, "mode": mode,
+        "x-flocktrack": {"run": d.run, "scenario": scenario_label, "sensors": sc.sensors.n, "mode": mode,
+                         **({"host": host} if plan.multi_host else {}),
                          "endpoint": endpoint(opts), "generated-by": f"flocktrack compose {scenario_label}"},
         "services": services,
         "configs": {k: {"file": f"./{input_path(k)}"} for k in CONFIG_FILES},
     }
-    if not opts.data:
+    if not opts.data and recorder:
         doc["volumes"] = {"recordings": {}}
     return doc
 
 
-def router_service(d: Deployment) -> dict:
-    """The Zenoh router every other service dials (the launcher's embedded router)."""
+def router_service(d: Deployment, node, plan) -> dict:
+    """The Zenoh router every other service of the host dials (the launcher's embedded router); with a
+    placement, this host's router of the mesh (its config in ``compose/``)."""
     opts = d.opts
     if opts.secure:
-        cmd = ["python", "-m", "flocktrack.router", "--config", f"{KEYS_MOUNT}/zenoh.json5"]
+        cmd = ["python", "-m", "flocktrack.launch.router", "--config", f"{KEYS_MOUNT}/zenoh.json5"]
+    elif plan.multi_host:
+        cmd = ["python", "-m", "flocktrack.launch.router", "--config", f"{CONF_DIR}/{node.slug}.json5"]
     else:
-        cmd = ["python", "-m", "flocktrack.router", "--config", ROUTER_CONFIG]
+        cmd = ["python", "-m", "flocktrack.launch.router", "--config", ROUTER_CONFIG]
         if d.host_net or opts.router_port != ROUTER_PORT:
             cmd += ["--listen", listen_endpoint(opts)]
-    return d.service("router", cmd, restart="unless-stopped",
-                     **({} if d.host_net else {"expose": [str(opts.router_port)]}),
+    extra = {} if d.host_net else {"expose": [str(opts.router_port)]}
+    if plan.multi_host and not opts.secure:
+        extra["configs"] = [{"source": "router", "target": f"{CONF_DIR}/{node.slug}.json5"}]
+    return d.service(node.slug, cmd, restart=docker_restart(node.restart), **extra,
                      health=_health(["--tcp", f"localhost:{opts.router_port}"], [], ROUTER_HEALTH))
 
 
-def recorder_service(d: Deployment) -> dict:
-    """The recorder, writing to ``/data`` (the named volume, or ``--data``) and scoring the run there."""
-    data = f"{d.opts.data}:{DATA_DIR}" if d.opts.data else f"recordings:{DATA_DIR}"
-    return d.service(
-        "recorder", ["python", "-m", "flocktrack.record", "--out", f"{DATA_DIR}/recording.mcap", "--summary", DATA_DIR,
-                     "--meta", _conf("meta"), *d.common, *d.zconf],
-        restart=docker_restart(RestartPolicy("never")), health=d.member_health("recorder/0"),
-        depends=AFTER_ROUTER, configs=_mounts("meta"), volumes=[data])
+#: the launcher's children's own flags, in a container (``flocktrack.launch.launcher.Launcher.argv``)
+_INPUT_ARGS = {"scenario": SCENARIO_ARGS, "design": DESIGN_ARGS, "meta": ("--meta", _conf("meta"))}
 
 
-def dashboard_service(d: Deployment) -> dict:
-    """The dashboard, published on the host's loopback unless ``--dashboard-public``. The operator link it
-    logs names the port a user opens: the host's published port (``--public-port``) when that is not the
-    container's."""
+def node_service(d: Deployment, node, router: str, after: dict[str, str], summary: bool = True) -> dict:
+    """The service of one node of the plan: ``python -m MODULE ARGS`` with the run's inputs from
+    ``/etc/flocktrack/``, its restart policy, its member health check and its start order."""
     opts = d.opts
-    port = opts.dashboard_port if d.host_net else DASHBOARD_PORT
-    host = "0.0.0.0" if (opts.dashboard_public or not d.host_net) else "127.0.0.1"
-    public = [] if port == opts.dashboard_port else ["--public-port", str(opts.dashboard_port)]
-    tls = ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"] if opts.secure else []
-    return d.service(
-        "dashboard", ["python", "-m", "dashboards", "--port", str(port), "--host", host, *public, *SCENARIO_ARGS,
-                      *d.common, *d.zconf, *tls],
-        restart=docker_restart(RestartPolicy("on-failure", 3)),
+    cmd = ["python", "-m", node.module, *node.args]
+    for what in node.inputs:
+        cmd += ["--mode", d.mode] if what == "mode" else list(_INPUT_ARGS[what])
+    configs = [w for w in node.inputs if w != "mode"]
+    extra: dict = {}
+    health_extra: list[str] = []
+    if node.kind == "recorder":
+        data = f"{opts.data}:{DATA_DIR}" if opts.data else f"recordings:{DATA_DIR}"
+        cmd += ["--out", f"{DATA_DIR}/recording.mcap", *(["--summary", DATA_DIR] if summary else []),
+                "--name", node.name, "--plan", _conf("plan")]
+        configs.append("plan")
+        extra["volumes"] = [data]
+    elif node.kind == "world":
+        cmd += ["--startup-timeout", str(STARTUP_TIMEOUT_S)]
+    elif node.kind == "dashboard":
+        port = opts.dashboard_port if d.host_net else DASHBOARD_PORT
+        host = "0.0.0.0" if (opts.dashboard_public or not d.host_net) else "127.0.0.1"
+        public = [] if port == opts.dashboard_port else ["--public-port", str(opts.dashboard_port)]
+        tls = ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"] if opts.secure else []
+        cmd[3:3] = ["--port", str(port), "--host", host, *public]
+        cmd += tls
         # (the page of a secure run is HTTPS with a certificate of the run's CA: its token check suffices)
-        health=d.member_health("dashboard/0", [] if opts.secure else ["--http", f"http://localhost:{port}/"]),
-        depends=AFTER_ROUTER, configs=_mounts("scenario", "design"),
-        # its buttons kill processes and partition the flock: on the host's loopback only unless asked
-        **({} if d.host_net else
-           {"ports": [f"{'' if opts.dashboard_public else '127.0.0.1:'}{opts.dashboard_port}:{DASHBOARD_PORT}"]}))
-
-
-def agent_services(d: Deployment, n: int, extra: list[str]) -> dict[str, dict]:
-    """The target, one service per sensor (``sensor-<i>``, rejoining when restarted) and the extra roles
-    (``extra``: e.g. ``fusion``)."""
-    mode, common, zconf = d.mode, d.common, d.zconf
-    sensor_policy = RestartPolicy(d.opts.restart, d.opts.max_restarts)
-    services = {"target": d.service(
-        "target", ["python", "-m", "agent", "target", *SCENARIO_ARGS, "--mode", mode, *common, *zconf],
-        restart=docker_restart(RestartPolicy("never")), health=d.member_health("target/0"),
-        depends=AFTER_RECORDER, configs=_mounts("scenario"))}
-    for i in range(n):
-        argv = ["python", "-m", "agent", "sensor", "--id", str(i), *SCENARIO_ARGS, *DESIGN_ARGS, "--mode", mode,
-                *common, *zconf]
-        services[f"sensor-{i}"] = d.service(
-            f"agent-{i}", _rejoin_on_restart(argv, f"sensor-{i}"), restart=docker_restart(sensor_policy),
-            health=d.member_health(f"agent/{i}"), depends=AFTER_RECORDER,
-            configs=_mounts("scenario", "design"))
-    for role in extra:
-        services[role] = d.service(
-            role, ["python", "-m", "agent", role, *SCENARIO_ARGS, "--mode", mode, *common],
-            restart=docker_restart(RestartPolicy("never")), health=d.member_health(f"{role}/0"),
-            depends=AFTER_RECORDER, configs=_mounts("scenario"))
-    return services
-
-
-def world_service(d: Deployment, n: int, extra: list[str]) -> dict:
-    """The world, started last; it waits for the recorder and the extra roles (its start barrier)."""
-    deps = dict(AFTER_RECORDER, target="service_started", **{f"sensor-{i}": "service_started" for i in range(n)},
-                **{role: "service_started" for role in extra})
-    return d.service(
-        "world", ["python", "-m", "topology", *SCENARIO_ARGS, "--mode", d.mode, "--expect", "recorder/0",
-                  *[a for role in extra for a in ("--expect", f"{role}/0")],
-                  "--startup-timeout", str(STARTUP_TIMEOUT_S), *d.common, *d.zconf],
-        restart=docker_restart(RestartPolicy("never")), health=d.member_health("world/0"),
-        depends=deps, configs=_mounts("scenario"))
+        health_extra = [] if opts.secure else ["--http", f"http://localhost:{port}/"]
+        if not d.host_net:   # its buttons kill processes and partition the flock: on the host's loopback only
+            extra["ports"] = [f"{'' if opts.dashboard_public else '127.0.0.1:'}{opts.dashboard_port}:{DASHBOARD_PORT}"]
+    cmd += [*d.common, *d.zconf]
+    if node.kind == "agent":
+        cmd = _rejoin_on_restart(cmd, node.slug)
+    return d.service(node.slug, cmd, restart=docker_restart(node.restart),
+                     health=d.member_health(node.name, health_extra),
+                     depends=after, configs=_mounts(*configs), **extra)
 
 
 def _rejoin_on_restart(argv: list[str], name: str) -> list[str]:
@@ -513,7 +510,7 @@ def _posix_rel(path: Path, start: Path) -> str:
 def scenario_label(path: str | Path) -> str:
     """``scenarios/NAME.toml`` for a scenario the package ships, else the file's name: what the
     generated files say, wherever they are generated from."""
-    from .resources import SCENARIO_DIR, bundled_name
+    from flocktrack.resources import SCENARIO_DIR, bundled_name
 
     name = bundled_name(path)
     return f"{SCENARIO_DIR}/{name}.toml" if name else Path(path).name
@@ -545,11 +542,16 @@ def build_paths(out_dir: Path, root: Path | None) -> tuple[str, str]:
 
 
 def render(scenario: str | Path, out_dir: str | Path = ".", *, mode: str | None = None, sets: list[str] | None = None,
-           **options) -> dict[str, str]:
+           placement=None, **options) -> dict[str, str]:
     """The files for a scenario, as written to ``out_dir``: ``{"docker-compose.yml": text, "Dockerfile":
-    text, "compose/scenario.toml": text, "compose/design.json": text, "compose/meta.json": text}``.
-    ``options``: the fields of :class:`ComposeOptions` (``image``, ``network``, ``secure`` …). With
-    ``secure`` the per-service credentials are written by :func:`stage` (they are not texts to compare)."""
+    text, "compose/scenario.toml": text, "compose/design.json": text, "compose/meta.json": text,
+    "compose/plan.json": text}``. ``options``: the fields of :class:`ComposeOptions` (``image``, ``network``,
+    ``secure`` …). With ``placement`` (a :class:`flocktrack.plan.Placement`): the same for every host, under
+    ``HOST/``, each with that host's nodes and its router of the mesh (``compose/router.json5``), every service
+    on the host's network. With ``secure`` the per-service credentials are written by :func:`stage` (they are
+    not texts to compare)."""
+    from dataclasses import replace
+
     from agent.scenario import parse_scenario, scenario_data
 
     if options.get("restart", "on-failure") not in ("never", "on-failure"):
@@ -557,37 +559,57 @@ def render(scenario: str | Path, out_dir: str | Path = ".", *, mode: str | None 
     data = scenario_data(str(scenario), sets or [], **{"run.mode": mode})
     sc = parse_scenario(data, str(scenario))
     label = scenario_label(scenario)
-    root = source_tree(Path(out_dir), Path.cwd())
-    context, dockerfile = build_paths(Path(out_dir), root)
     if (options.get("data") or options.get("secure")) and not options.get("user"):
         options["user"] = f"{os.getuid()}:{os.getgid()}"   # the host files they read or write are yours
-    opts = ComposeOptions(context=context, dockerfile=dockerfile, **options)
+    if placement is not None:
+        options["network"] = "host"     # each host's router is dialled by the others on the host's address
     texts = run_inputs(sc, data, label)
-    doc = compose_model(sc, opts, sc.run.mode, label)
-    cmd = f"flocktrack compose {label}" + _flags(opts, mode, sets)
-    up = "docker compose up --build"
-    where = f"http{'s' if opts.secure else ''}://localhost:{opts.dashboard_port}"
-    header = (f"The multi-container deployment of {label} ({sc.sensors.n} sensors, {sc.run.mode}, run "
-              f"{sc.run.name!r}, {opts.network} network{', TLS + ACL' if opts.secure else ''}).\n"
-              f"Generated by `{cmd}`: regenerate, do not edit\n"
-              f"(`{cmd} --check` says whether it is up to date). See docs/deploy.md.\n\n"
-              f"The run's inputs are the files in {INPUTS_DIR}/ beside this file (generated too).\n\n"
-              f"    {up}      # then open {where}\n")
-    release = {} if root is not None else {f"{WHEELS_DIR}/README": WHEELS_NOTE}
-    return {"docker-compose.yml": to_yaml(doc, header), "Dockerfile": dockerfile_text(from_sources=root is not None),
-            **{input_path(k): texts[k] for k in CONFIG_FILES}, **release}
+    plan = replace(compose_plan(sc, ComposeOptions(**options), placement), scenario=label,
+                   placement=Path(placement.source).name if placement is not None else None)
+    texts["plan"] = plan.to_json()
+    files: dict[str, str] = {}
+    for h in plan.hosts:
+        prefix = f"{h.name}/" if plan.multi_host else ""
+        where_dir = Path(out_dir) / prefix
+        root = source_tree(where_dir, Path.cwd())
+        context, dockerfile = build_paths(where_dir, root)
+        opts = ComposeOptions(context=context, dockerfile=dockerfile, **{
+            **options, **({"router_port": h.port} if plan.multi_host else {})})
+        doc = compose_model(sc, opts, sc.run.mode, label, plan=plan, host=h.name)
+        if plan.multi_host:
+            from flocktrack.deploy.mesh import host_router_config
+
+            doc["configs"]["router"] = {"file": f"./{INPUTS_DIR}/router.json5"}
+            files[f"{prefix}{INPUTS_DIR}/router.json5"] = json.dumps(host_router_config(plan, h.name), indent=2) + "\n"
+        cmd = f"flocktrack compose {label}" + _flags(opts, mode, sets) + (
+            f" --placement {plan.placement}" if plan.multi_host else "")
+        where = f"http{'s' if opts.secure else ''}://localhost:{opts.dashboard_port}"
+        on = f", host {h.name} of {', '.join(x.name for x in plan.hosts)}" if plan.multi_host else ""
+        header = (f"The multi-container deployment of {label} ({sc.sensors.n} sensors, {sc.run.mode}, run "
+                  f"{plan.run!r}, {opts.network} network{', TLS + ACL' if opts.secure else ''}{on}).\n"
+                  f"Generated by `{cmd}`: regenerate, do not edit\n"
+                  f"(`{cmd} --check` says whether it is up to date). See docs/deploy.md.\n\n"
+                  f"The run's inputs are the files in {INPUTS_DIR}/ beside this file (generated too).\n\n"
+                  f"    docker compose up --build      # then open {where}\n")
+        files[f"{prefix}docker-compose.yml"] = to_yaml(doc, header)
+        files[f"{prefix}Dockerfile"] = dockerfile_text(from_sources=root is not None)
+        files.update({f"{prefix}{input_path(k)}": texts[k] for k in CONFIG_FILES})
+        if root is None:
+            files[f"{prefix}{WHEELS_DIR}/README"] = WHEELS_NOTE
+    return files
 
 
 def stage(scenario: str | Path, out_dir: str | Path, keys_dir: str | Path, *, network: str = "bridge",
           router_port: int = ROUTER_PORT, sets: list[str] | None = None) -> list[Path]:
     """A secure deployment's per-service credentials, from the key set in ``keys_dir``, written to
-    ``out_dir/compose/keys/`` (:func:`flocktrack.compose_keys.stage_keys`)."""
+    ``out_dir/compose/keys/`` (:func:`flocktrack.deploy.compose_keys.stage_keys`)."""
     from agent.scenario import parse_scenario, scenario_data
 
     sc = parse_scenario(scenario_data(str(scenario), sets or []), str(scenario))
     opts = ComposeOptions(network=network, router_port=router_port, secure=True)
-    ks = check_keys(keys_dir, sc.run.name, sc.sensors.n, router_host(opts), str(scenario))
-    return stage_keys(ks, out_dir, endpoint(opts), listen_endpoint(opts), sc.sensors.n)
+    plan = compose_plan(sc, opts)
+    ks = check_keys(keys_dir, plan, router_host(opts), str(scenario))
+    return stage_keys(ks, out_dir, endpoint(opts), listen_endpoint(opts), plan)
 
 
 def _flags(opts: ComposeOptions, mode: str | None, sets: list[str] | None) -> str:
@@ -664,6 +686,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--max-restarts", type=int, default=3, help="restarts per sensor with on-failure (default 3)")
     ap.add_argument("--mode", choices=["lockstep", "realtime"], help="override run.mode")
     ap.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override any scenario key")
+    ap.add_argument("--placement", metavar="HOSTS.toml",
+                    help="a placement of the nodes on several hosts: one directory DIR/HOST/ per host, each with "
+                         "its nodes and its router of the mesh (host networking)")
     ap.add_argument("--check", action="store_true",
                     help="write nothing; exit 1 (with a diff) if the files in DIR are not what would be generated")
 
@@ -673,8 +698,15 @@ def cmd_compose(args) -> int:
         print("error: --secure and --keys DIR go together (make a key set with `flocktrack keys SCENARIO --out DIR`)",
               file=sys.stderr)
         return 2
+    if args.placement and args.secure:
+        print("error: --placement with --secure: a secure deployment on several hosts is `flocktrack run --placement "
+              "--secure`; compose writes one host's secure deployment (drop --placement)", file=sys.stderr)
+        return 2
+    from flocktrack.plan import load_placement
+
+    placement = load_placement(args.placement) if args.placement else None
     data = str(Path(args.data).resolve()) if args.data else None
-    files = render(args.scenario, args.out, mode=args.mode, sets=args.set, image=args.image,
+    files = render(args.scenario, args.out, mode=args.mode, sets=args.set, placement=placement, image=args.image,
                    base_image=args.base_image, network=args.network, router_port=args.router_port, data=data,
                    user=args.user, secure=args.secure, dashboard_port=args.dashboard_port,
                    dashboard_public=args.dashboard_public, restart=args.restart, max_restarts=args.max_restarts)
@@ -702,8 +734,10 @@ def cmd_compose(args) -> int:
         print(f"note: no flocktrack source checkout here: the image installs flocktrack=={__version__} (from "
               f"{args.out}/{WHEELS_DIR}/ if you put its wheel there, else from the package index)", file=sys.stderr)
     secrets = f"; {INPUTS_DIR}/keys/ holds each service's credentials (keep it private)" if args.secure else ""
-    print(f"wrote {', '.join(str(p) for p in paths)}{secrets}; start it with: "
-          f"docker compose -f {paths[0]} up --build")
+    composes = [p for p in paths if p.name == "docker-compose.yml"]
+    start = "; ".join(f"docker compose -f {p} up --build" + (f" (on host {p.parent.name})" if placement else "")
+                      for p in composes)
+    print(f"wrote {', '.join(str(p) for p in paths)}{secrets}; start it with: {start}")
     return 0
 
 
@@ -718,7 +752,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m flocktrack.compose SCENARIO …`` (the same as ``flocktrack compose``)."""
+    """``python -m flocktrack.deploy.compose SCENARIO …`` (the same as ``flocktrack compose``)."""
     from agent.scenario import ScenarioError
 
     ap = argparse.ArgumentParser(prog="flocktrack compose", description=__doc__.split("\n\n")[0])

@@ -1,19 +1,18 @@
-"""The process-per-agent launcher: embedded Zenoh router, spawn, supervise, shut down.
+"""The launcher: the embedded Zenoh router, and one OS process per node of its host's share of the run plan.
 
-``Launcher`` opens a Zenoh router *inside this process* (``broker_cfg/local.json5``; no separately
-installed ``zenohd``), spawns one OS process per sensor, the target, the world and the recorder
-(``python -m agent …``, ``python -m topology …``, ``python -m flocktrack.record …``), forwards their
-output with a ``[name]`` prefix, and supervises them with a declared restart policy (dora-rs style):
-
-* ``never``       — a process that dies stays dead (the world treats it as a node with no links);
-* ``on-failure``  — a process that exits non-zero or is killed is restarted, at most ``max_restarts``
-  times, after ``backoff_s`` × 2^(attempt−1) seconds; a restarted sensor rejoins the running flock.
+``Launcher(plan, options)`` opens a Zenoh router *inside this process* (``broker_cfg/local.json5``; no
+separately installed ``zenohd``; with a placement, this host's router of the mesh, dialling the other hosts'),
+spawns the processes the plan places on its host (:meth:`flocktrack.plan.RunPlan.processes`: ``python -m agent
+sensor …``, ``python -m topology …``, ``python -m flocktrack.record …``), forwards their output with a
+``[name]`` prefix, and supervises them with each node's declared restart policy
+(:class:`flocktrack.plan.RestartPolicy`; a restarted sensor rejoins the running flock).
 
 Process faults of the fault plan (crash, pause, router_restart on ``world/event``) are executed here and
 acknowledged on ``launcher/event`` once they have taken effect (the process reaped / stopped / continued,
 the restarted process spawned, the router about to close): in lockstep the world holds the fault's tick
 for that ack, so a crash scheduled for tick k lands at tick k. The launcher is a member of the run
-(liveliness token ``launcher/0``) so the world knows someone will answer.
+(liveliness token ``launcher/0``, ``launcher/HOST`` with a placement) so the world knows someone will
+answer; each host's launcher executes the faults of its own nodes.
 
 Shutdown (end of run, Ctrl-C, SIGTERM) sends SIGTERM to every child, waits, then SIGKILLs what is
 left; every child also has PR_SET_PDEATHSIG so it dies with the launcher even if the launcher is
@@ -33,20 +32,18 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .forkserver import ForkedProcess, die_with_parent, forkable, start_server
-from .resources import broker_config
+from agent.ports import Ports
+from flocktrack.launch.forkserver import ForkedProcess, die_with_parent, forkable, start_server
+from flocktrack.plan.model import Node, RestartPolicy, RunPlan
+from flocktrack.resources import broker_config, config_file
 
-LOCAL_ROUTER_CFG = "local.json5"   # the embedded router's config: broker_cfg/local.json5 of the package
+LOCAL_ROUTER_CFG = "local.json5"
+MESH_CLIENT = "mesh/client.json5"   # a mesh host's processes (broker_cfg/mesh/client.json5)
 
-
-@dataclass(frozen=True)
-class RestartPolicy:
-    mode: str = "never"          # "never" | "on-failure"
-    max_restarts: int = 3
-    backoff_s: float = 0.5
-
-    def delay(self, attempt: int) -> float:
-        return self.backoff_s * (2 ** max(0, attempt - 1))
+#: the supervisor's control client: it answers kill/restart and the process faults on ``launcher/event``,
+#: follows the ticks (the tick a kill names) and the end (a host without the world ends with it)
+PORTS = Ports(writes=("launcher/event",), reads=("control/kill", "control/restart", "world/event", "world/tick",
+                                                 "world/end"))   # the embedded router's config: broker_cfg/local.json5 of the package
 
 
 def free_port() -> int:
@@ -78,6 +75,13 @@ def _wait_stopped(pid: int, timeout_s: float) -> bool:
             return True
         time.sleep(0.002)
     return False
+
+
+STARTUP_REPORT_S = 5.0    #: how often a run that has not begun says what it waits for
+
+
+def _slug(name: str) -> str:
+    return name.replace("/", "-")
 
 
 _ALARMS = ("WARNING", "ERROR", "CRITICAL", "error:", "Traceback")
@@ -113,31 +117,51 @@ class Child:
         return self.proc.pid if self.proc else None
 
 
+@dataclass(frozen=True)
+class RunInputs:
+    """The files a run's nodes read (``flocktrack.engine.run.write_inputs``): the resolved scenario, the
+    pre-run design, the recorder's metadata and the plan itself."""
+
+    scenario: Path
+    design: Path | None = None
+    meta: Path | None = None
+    plan: Path | None = None
+
+
+@dataclass(frozen=True)
+class LaunchOptions:
+    """How one launcher runs its host's share of a plan. ``host``: which host of the plan this is (default
+    its first); ``port``: its router's port (default: a free one; with a placement: the host's);
+    ``keys``: a :class:`flocktrack.deploy.keys.KeySet` — TLS + mTLS + user/password with the ACL, every
+    child with its own identity's config; ``startup_timeout_s``: how long the run waits for every host's
+    members before it gives up."""
+
+    run_dir: Path
+    inputs: RunInputs
+    host: str | None = None
+    port: int | None = None
+    quiet: bool = False
+    verbose: bool = False
+    dashboard_port: int | None = None
+    dashboard_token: str | None = None
+    keys: object | None = None
+    startup_timeout_s: float = 90.0
+
+
 class Launcher:
-    def __init__(self, run: str, run_dir: Path, n_sensors: int, scenario_file: Path, design_file: Path | None,
-                 mode: str, port: int | None = None, policy: RestartPolicy = RestartPolicy(),
-                 record_to: Path | None = None, meta_file: Path | None = None, quiet: bool = False,
-                 extra_children: list[tuple[str, list[str]]] | None = None, dashboard_port: int | None = None,
-                 keys=None, mesh=None, fusion: bool = False, verbose: bool = False,
-                 dashboard_token: str | None = None):
-        self.fusion = bool(fusion)  # start the fusion solver process (scenarios with [uavs]/[fusion])
-        self.run, self.run_dir, self.n = run, Path(run_dir), int(n_sensors)
-        self.scenario_file, self.design_file, self.mode = scenario_file, design_file, mode
-        self.port = port or free_port()
-        # keys: a flocktrack.keys.KeySet → the router speaks TLS + mTLS + user/password with the ACL,
-        # and every child connects with its own identity's config (--config)
-        self.keys = keys
-        # mesh: a flocktrack.secure.Mesh → the embedded router is the first host's router (its config,
-        # port, listening on every interface) and the children are placed on their hosts
-        self.mesh = mesh
-        if mesh is not None:
-            self.port = mesh.port
-        self.endpoint = f"tls/localhost:{self.port}" if keys is not None else f"tcp/127.0.0.1:{self.port}"
-        self.policy = policy
-        self.record_to, self.meta_file = record_to, meta_file
+    """Spawns and supervises the processes of one host of a :class:`~flocktrack.plan.RunPlan`."""
+
+    def __init__(self, plan: RunPlan, opts: LaunchOptions):
+        self.plan, self.opts = plan, opts
+        self.run, self.run_dir, self.mode = plan.run, Path(opts.run_dir), plan.mode
+        self.host = plan.host(opts.host) if opts.host else plan.hosts[0]
+        self.n = len(plan.of_kind("agent"))
+        self.keys = opts.keys
+        self.port = self.host.port if plan.multi_host else (opts.port or free_port())
+        self.endpoint = f"tls/localhost:{self.port}" if self.keys is not None else f"tcp/127.0.0.1:{self.port}"
         # the children's output always goes to DIR/logs/; on the terminal: every line with ``verbose``,
         # warnings and errors only by default, nothing with ``quiet``
-        self.quiet, self.verbose = quiet, verbose
+        self.quiet, self.verbose = opts.quiet, opts.verbose
         self.deadlines = 0                 # "deadline on" lines seen in the children's logs (missed rounds)
         self.on_output = None              # called before a child's line is printed (a status line clears)
         self.children: dict[str, Child] = {}
@@ -145,79 +169,88 @@ class Launcher:
         self.events: list[dict] = []   # supervisor timeline (spawn / exit / restart), also in run.json
         self._lock = threading.Lock()
         self.stopping = threading.Event()   #: set once the launcher is stopping (no more restarts)
-        self.extra_children = extra_children or []
-        self.dashboard_port = dashboard_port
+        self.dashboard_port = opts.dashboard_port
         #: the dashboard's operator token (dashboards/operator.py), kept 0600 in the run directory
-        self.dashboard_token = dashboard_token
-        self._registered = False             # this run is in the machine's list (flocktrack/runs.py)
+        self.dashboard_token = opts.dashboard_token
+        self._registered = False             # this run is in the machine's list (flocktrack/launch/runs.py)
         self.ctl_bus = None
         self.tick_seen = 0                   # the newest world/tick k (the tick a kill/restart answer names)
+        self.ticking = False                 # a world/tick seen: the run has begun on every host
+        self.world_ended = False             # world/end seen (how a host without the world knows the end)
+        self.members: set[str] = set()       # the plan's members alive (the start barrier across hosts)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+
+    @property
+    def name(self) -> str:
+        """This launcher's node name (``launcher/0``, or ``launcher/HOST`` with a placement)."""
+        return next(n.name for n in self.plan.on(self.host.name) if n.kind == "launcher")
 
     # ------------------------------------------------------------------ processes
     def _common(self) -> list[str]:
         return ["--connect", self.endpoint, "--run", self.run]
 
-    def plan(self) -> list[Child]:
-        py = sys.executable
-        sc = ["--scenario", str(self.scenario_file)]
-        dz = ["--design", str(self.design_file)] if self.design_file else []
-        mode = ["--mode", self.mode]
-        kids = []
-        if self.record_to is not None:
-            argv = [py, "-m", "flocktrack.record", "--out", str(self.record_to), *self._common()]
-            if self.meta_file:
-                argv += ["--meta", str(self.meta_file)]
-            kids.append(Child("recorder/0", argv, RestartPolicy("never"), self.run_dir / "logs" / "recorder.log"))
-        for name, argv in self.extra_children:
-            kids.append(Child(name, argv, RestartPolicy("never"), self.run_dir / "logs" / f"{name.replace('/', '_')}.log"))
-        if self.dashboard_port is not None:
-            who = ["--viewer-only"]
-            if self.dashboard_token:
-                from dashboards.operator import write_token
-
-                write_token(self.run_dir / "dashboard_token", self.dashboard_token)
-                who = ["--operator-token-file", str(self.run_dir / "dashboard_token")]
-            if self.keys is not None:   # a secure run's page is HTTPS with a certificate of the run's CA
-                who += [a for flag, f in zip(("--tls-cert", "--tls-key"), self.keys.web_cert()) for a in (flag, str(f))]
-            kids.append(Child("dashboard/0", [py, "-m", "dashboards", "--port", str(self.dashboard_port), *sc, *who,
-                                              *self._common()], RestartPolicy("on-failure", 3),
-                              self.run_dir / "logs" / "dashboard.log"))
-        for i in range(self.n):
-            kids.append(Child(f"agent/{i}", [py, "-m", "agent", "sensor", "--id", str(i), *sc, *dz, *mode,
-                                             *self._common()], self.policy,
-                              self.run_dir / "logs" / f"agent_{i}.log", rejoin_flag="--rejoin"))
-        kids.append(Child("target/0", [py, "-m", "agent", "target", *sc, *mode, *self._common()],
-                          RestartPolicy("never"), self.run_dir / "logs" / "target.log"))
-        if self.fusion:
-            kids.append(Child("fusion/0", [py, "-m", "agent", "fusion", *sc, *mode, *self._common()],
-                              RestartPolicy("never"), self.run_dir / "logs" / "fusion.log"))
-        expect = ["--expect", "launcher/0"]    # the world waits for us: process faults need our acks
-        expect += ["--expect", "recorder/0"] if self.record_to is not None else []
-        if self.fusion:
-            expect += ["--expect", "fusion/0"]
-        for name, _ in self.extra_children:
-            expect += ["--expect", name]
-        kids.append(Child("world/0", [py, "-m", "topology", *sc, *mode, *expect, *self._common()],
-                          RestartPolicy("never"), self.run_dir / "logs" / "world.log"))
+    def argv(self, node: Node) -> list[str]:
+        """The command line of one of the plan's nodes on this host."""
+        ins = self.opts.inputs
+        files = {"scenario": ins.scenario, "design": ins.design, "meta": ins.meta}
+        argv = [sys.executable, "-m", node.module, *node.args]
+        for what in node.inputs:
+            if what == "mode":
+                argv += ["--mode", self.mode]
+            elif files.get(what) is not None:
+                argv += [f"--{what}", str(files[what])]
+        if node.kind == "recorder":
+            argv += ["--out", str(self.run_dir / "recording.mcap"), "--name", node.name]
+        if node.kind == "recorder" and ins.plan is not None:
+            argv += ["--plan", str(ins.plan)]
+        if node.kind == "world":
+            argv += ["--startup-timeout", str(self.opts.startup_timeout_s + 30)]
+        if node.kind == "dashboard":
+            argv += ["--port", str(self.dashboard_port), *self._dashboard_access()]
+        argv += self._common()
         if self.keys is not None:
-            from .keys import child_identity
+            cfg = self.keys.client(node.slug)
+            if cfg.exists():
+                argv += ["--config", str(cfg)]
+        elif self.plan.multi_host:   # a mesh host's processes: short leases, so a cut host is noticed
+            argv += ["--config", str(config_file(MESH_CLIENT))]
+        return argv
 
-            for c in kids:
-                cfg = self.keys.client(child_identity(c.name))
-                if cfg.exists():
-                    c.argv += ["--config", str(cfg)]
-        if self.mesh is not None:
-            kids = self.mesh.place(kids)
+    def _dashboard_access(self) -> list[str]:
+        who = ["--viewer-only"]
+        if self.dashboard_token:
+            from dashboards.operator import write_token
+
+            write_token(self.run_dir / "dashboard_token", self.dashboard_token)
+            who = ["--operator-token-file", str(self.run_dir / "dashboard_token")]
+        if self.keys is not None:   # a secure run's page is HTTPS with a certificate of the run's CA
+            who += [a for flag, f in zip(("--tls-cert", "--tls-key"), self.keys.web_cert()) for a in (flag, str(f))]
+        return who
+
+    def child_plan(self) -> list[Child]:
+        """This host's children, one per process of the plan on it (the dashboard only with a port)."""
+        kids = []
+        for node in self.plan.processes(self.host.name):
+            if node.kind == "dashboard" and self.dashboard_port is None:
+                continue
+            kids.append(Child(node.name, self.argv(node), node.restart, self.run_dir / "logs" / f"{node.slug}.log",
+                              rejoin_flag="--rejoin" if node.kind == "agent" else None,
+                              service=node.kind == "dashboard"))
         return kids
 
     def _open_router(self):
-        if self.mesh is not None:
-            return open_router(self.port, config_file=self.mesh.hub_config,
-                               host=self.mesh.listen_host)
+        if self.plan.multi_host:
+            return open_router(self.port, config_file=self._mesh_config(), host=self.host.listen or "0.0.0.0")
         if self.keys is None:
             return open_router(self.port)
         return open_router(self.port, config_file=self.keys.router(), proto="tls")
+
+    def _mesh_config(self) -> Path:
+        """This host's router config in a placement's mesh (:func:`flocktrack.deploy.mesh.host_router_configs`),
+        written to the run directory."""
+        from flocktrack.deploy.mesh import host_router_configs
+
+        return host_router_configs(self.plan, self.run_dir / "router")[self.host.name]
 
     def _record_exit(self, c: Child) -> int | None:
         """The exit code of ``c``'s process if it has exited and was not yet recorded (then records it)."""
@@ -234,7 +267,7 @@ class Launcher:
         argv = list(c.argv) + ([c.rejoin_flag] if rejoin and c.rejoin_flag else [])
         env = dict(os.environ, PYTHONUNBUFFERED="1", RUST_LOG=os.environ.get("RUST_LOG", "error"))
         env["FLOCKTRACK_STATS_DIR"] = str(self.run_dir / "stats")
-        if forkable(argv):   # python -m …: forked from the pre-imported template (flocktrack/forkserver.py)
+        if forkable(argv):   # python -m …: forked from the pre-imported template (flocktrack/launch/forkserver.py)
             c.proc = ForkedProcess(argv, env, os.getcwd())
         else:
             c.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -262,27 +295,67 @@ class Launcher:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        kids = self.plan()
+        kids = self.child_plan()
         if any(forkable(c.argv) for c in kids):
             start_server()        # the template's imports, once, before the router and the children
         self.router = self._open_router()
         from agent.bus import ZenohBus
 
         self.ctl_bus = ZenohBus(self.run, connect=self.endpoint,
-                                config_file=str(self.keys.client("launcher")) if self.keys is not None else None)
+                                config_file=str(self.keys.client(_slug(self.name))) if self.keys is not None else None)
+        self.ctl_bus.restrict_writes(PORTS.writes)
         self.ctl_bus.subscribe("control/kill", self._on_control)
         self.ctl_bus.subscribe("control/restart", self._on_control)
         self.ctl_bus.subscribe("world/event", self._on_world_event)
         self.ctl_bus.subscribe("world/tick", self._on_tick)
-        self.ctl_bus.declare_token("launcher/0")
+        self.ctl_bus.subscribe("world/end", self._on_end)
+        self.ctl_bus.watch_members(self._on_member)
+        self.ctl_bus.declare_token(self.name)
         self._register()
+        self._started_at = time.monotonic()
+        self._told_at = self._started_at
         for c in kids:
             self.children[c.name] = c
             self._spawn(c)
 
+    def _on_member(self, name: str, alive: bool) -> None:
+        (self.members.add if alive else self.members.discard)(name)
+
+    def _on_end(self, key: str, msg) -> None:
+        self.world_ended = True
+
+    def waiting_for(self) -> dict[str, list[str]]:
+        """Before the first tick: the plan's members not yet alive, by host."""
+        out: dict[str, list[str]] = {}
+        for n in self.plan.nodes:
+            if n.member and n.name not in self.members and n.name != self.name:
+                out.setdefault(n.host, []).append(n.name)
+        return out
+
+    def _startup_check(self) -> int | None:
+        """Until the first tick: every few seconds, which hosts and nodes the run still waits for; after
+        ``startup_timeout_s`` the run gives up (exit 3)."""
+        if self.ticking:
+            return None
+        now = time.monotonic()
+        if now - self._told_at >= STARTUP_REPORT_S:
+            self._told_at = now
+            missing = self.waiting_for()
+            if missing:
+                print(f"waiting {now - self._started_at:.0f} s for " + "; ".join(
+                    f"host {h}: {', '.join(ns[:5])}{' …' if len(ns) > 5 else ''}" for h, ns in missing.items()),
+                      file=sys.stderr, flush=True)
+        if now - self._started_at > self.opts.startup_timeout_s:
+            missing = self.waiting_for()
+            where = "; ".join(f"host {h}: {', '.join(ns)}" for h, ns in missing.items()) or "the first tick"
+            print(f"error: the run did not start within {self.opts.startup_timeout_s:.0f} s; still waiting for "
+                  f"{where}", file=sys.stderr, flush=True)
+            return 3
+        return None
+
     def _register(self) -> None:
-        """This run in the machine's list of runs (flocktrack/runs.py: ``flocktrack ps``, ``fault``, ``logs``)."""
-        from .runs import LocalRun, register
+        """This run in the machine's list of runs (flocktrack/launch/runs.py: ``flocktrack ps``, ``fault``, ``logs``)."""
+        from flocktrack.launch.runs import LocalRun, register
 
         config = self.keys.client("dashboard") if self.keys is not None else None
         try:
@@ -325,6 +398,7 @@ class Launcher:
             self._answer(msg, cmd.agent, None)
 
     def _on_tick(self, key: str, msg) -> None:
+        self.ticking = True
         self.tick_seen = max(self.tick_seen, msg.k)
 
     def _answer(self, msg, agent: int | None, refusal: str | None) -> None:
@@ -349,6 +423,10 @@ class Launcher:
         if agents is None or phase not in ("start", "heal"):
             return
         names = [f"agent/{a}" for a in agents]
+        if kind == "router_restart" and "world/0" not in self.children:
+            return   # (the world's host's launcher bounces its router)
+        if kind != "router_restart" and not any(nme in self.children for nme in names):
+            return   # (another host's launcher runs them, and answers)
         self._event("fault", kind, phase=phase, agents=names, k=msg.k)
         if kind == "crash":
             for nme in names:
@@ -434,22 +512,26 @@ class Launcher:
         return bool(c and c.proc and c.proc.poll() is None)
 
     def wait(self, timeout_s: float | None = None, on_poll=None) -> int:
-        """Supervise until the world exits (then give the rest a moment to finish). Returns the
-        world's exit code (or 124 on timeout, 130 when stopped)."""
+        """Supervise until the world exits — or, on a host without the world, until its end — then give the
+        rest a moment to finish. Returns the world's exit code (0 on a host without it; 3 when the run did not
+        start, 124 on timeout, 130 when stopped)."""
         t0 = time.monotonic()
+        world = self.children.get("world/0")
         while True:
             self.supervise_once(0.05)
             if on_poll is not None:
                 on_poll(self)
             if self.stopping.is_set():
                 return 130
-            w = self.children["world/0"]
-            if w.proc is not None and w.proc.poll() is not None:
-                rc = w.proc.returncode
+            rc = self._startup_check()
+            if rc is not None:
+                return rc
+            done = world.proc is not None and world.proc.poll() is not None if world is not None else self.world_ended
+            if done:
+                rc = world.proc.returncode if world is not None else 0
                 end = time.monotonic() + 20.0
                 while time.monotonic() < end and any(
-                        c.proc and c.proc.poll() is None for n, c in self.children.items()
-                        if n != "dashboard/0" and not c.service):
+                        c.proc and c.proc.poll() is None for c in self.children.values() if not c.service):
                     self.supervise_once(0.05)
                 self.supervise_once()
                 return rc
@@ -464,8 +546,9 @@ class Launcher:
         self.stopping.set()
         procs = [c.proc for c in self.children.values() if c.proc and c.proc.poll() is None]
         # the recorder last, so it records the others' goodbyes
+        recorders = [c for c in self.children.values() if c.name.startswith("recorder/")]
         for p in procs:
-            if p is not self.children.get("recorder/0", Child("", [], RestartPolicy(), Path())).proc:
+            if all(p is not r.proc for r in recorders):
                 p.send_signal(signal.SIGTERM)
         end = time.monotonic() + grace_s
         for p in procs:
@@ -473,7 +556,7 @@ class Launcher:
                 p.wait(max(0.0, end - time.monotonic()))
             except subprocess.TimeoutExpired:
                 pass
-        rec = self.children.get("recorder/0")
+        rec = recorders[0] if recorders else None
         if rec and rec.proc and rec.proc.poll() is None:
             rec.proc.send_signal(signal.SIGTERM)
             try:
@@ -486,7 +569,7 @@ class Launcher:
                 c.proc.wait()
                 self._event("killed", c.name)
         if self._registered:
-            from .runs import unregister
+            from flocktrack.launch.runs import unregister
 
             unregister(self.run)
             self._registered = False

@@ -1,36 +1,29 @@
 """Credentials for a secure deployment: a CA, one certificate and one password per process, the router's
 access-control list and one Zenoh config per process — ``flocktrack keys SCENARIO --out DIR``.
 
-Every process of a run has an *identity*: ``router``, ``launcher`` (the supervisor's control client),
-``world``, ``target``, ``recorder``, ``dashboard`` and ``agent-0`` … ``agent-<n-1>``. An identity is
+Every node of the run plan (:mod:`flocktrack.plan`) has an *identity*: its name written with a dash
+(``router-0``, ``launcher-0``, ``world-0``, ``target-0``, ``recorder-0``, ``dashboard-0``, ``agent-0`` …,
+``fusion-0``; with a placement ``router-a``, ``launcher-a``, ``recorder-a`` … per host). An identity is
 (certificate common name = user name = identity). The router admits a client only over TLS with a
 client certificate signed by the run's CA (mTLS) *and* the identity's user/password; its access
 control then matches the link to the identity by both (``cert_common_names`` AND ``usernames``) and
-applies that identity's rules, ``default_permission: deny`` for everything else:
+applies that identity's rules, ``default_permission: deny`` for everything else. The rules are the node's
+declared ports, nothing more:
 
-=============  ======================================  =============================================
-identity       may put (ingress ``put``)               may read (``declare_subscriber`` in, ``put`` out)
-=============  ======================================  =============================================
-agent-i        ``ft/<run>/agent/<i>/**``               world/tick, world/event, world/end, target/truth,
-                                                       agent/*/to/<i>/xchg (its inbox only),
-                                                       agent/*/to/<i>/estimate (a restart's start),
-                                                       control/**
-target         ``ft/<run>/target/**``                  world/**, agent/*/estimate
-world          ``ft/<run>/world/**``                   agent/*/state, target/state, control/**,
-                                                       launcher/event
-dashboard      ``ft/<run>/control/**``                 ``ft/<run>/**``
-recorder       nothing                                 ``ft/<run>/**``
-launcher       ``ft/<run>/launcher/**`` (fault acks)    control/**, world/**
-=============  ======================================  =============================================
+* ``put`` in: exactly the keys the node declares it writes (``agent-3``: ``agent/3/meas``, ``agent/3/state``,
+  ``agent/3/to/*/xchg`` …; ``world-0``: ``world/tick``, ``world/event``, ``world/end``);
+* ``declare_subscriber`` in and ``put`` out: exactly the keys it declares it reads (``agent-3``: the tick,
+  the truth, its own inbox ``agent/*/to/3/xchg`` …);
+* its own liveliness token ``ft/<run>/alive/<name>`` (``agent-3`` → ``alive/agent/3``), while everyone may
+  watch ``ft/<run>/alive/**``.
 
-and each may declare only its own liveliness token ``ft/<run>/alive/<role>/<id>`` (agent-3 →
-``alive/agent/3``) while everyone may watch ``ft/<run>/alive/**``. Nobody may ``delete``, query or
-declare a queryable. Router-to-router links of a mesh (identity ``router`` / ``router-<host>``) are
-trusted with ``ft/<run>/**``.
+Nobody may ``delete``, query or declare a queryable. Router-to-router links of a mesh (the plan's routers)
+are trusted with ``ft/<run>/**``.
 
 Files written to DIR (see :class:`KeySet`)::
 
     keys.json              manifest: run name, identities, endpoint, hosts
+    plan.json              the run plan the identities and the ACL are made from
     ca.pem  ca.key         the CA (keep ca.key off the hosts: it is needed only to issue more certs)
     certs/<id>.pem/.key    one certificate + private key per identity (CN = identity)
     passwords.txt          the router's user:password dictionary (mode 0600)
@@ -45,13 +38,12 @@ import datetime as _dt
 import ipaddress
 import json
 import os
-import re
 import secrets
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .resources import add_scenario_argument
+from flocktrack.resources import add_scenario_argument
 
 SECURE_TEMPLATE = "secure.json5"   # the secure router's template: broker_cfg/secure.json5 of the package
 
@@ -59,51 +51,23 @@ ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "declare_queryab
                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"]
 DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 
-# what each role reads, relative to ft/<run>/ (the agent's own subscriptions: agent/roles/*.py,
-# topology/world.py, flocktrack/record.py, dashboards/live.py, flocktrack/launch.py)
-READS = {
-    # ({i}: the agent's own id — a sensor reads only the exchange payloads addressed to it)
-    "agent": ["world/tick", "world/event", "world/end", "target/truth", "agent/*/to/{i}/xchg",
-              "agent/*/to/{i}/estimate", "control/**"],
-    "target": ["world/**", "agent/*/estimate"],
-    "world": ["agent/*/state", "target/state", "control/**", "launcher/event"],
-    "recorder": ["**"],
-    "dashboard": ["**"],
-    "launcher": ["control/**", "world/**"],
-}
-WRITES = {"agent": None, "target": ["target/**"], "world": ["world/**"], "dashboard": ["control/**"],
-          "recorder": [], "launcher": ["launcher/**"]}
-TOKENS = {"launcher": "launcher/0", "target": "target/0", "world": "world/0", "recorder": "recorder/0", "dashboard": "dashboard/0"}
-
-
-def identities(n_sensors: int) -> list[str]:
-    """Every identity of a run with ``n_sensors`` sensors (the router first)."""
-    return ["router", "launcher", "world", "target", "recorder", "dashboard",
-            *[f"agent-{i}" for i in range(n_sensors)]]
-
-
-def role_of(ident: str) -> tuple[str, int | None]:
-    """'agent-3' → ('agent', 3); 'world' → ('world', None)."""
-    m = re.fullmatch(r"agent-(\d+)", ident)
-    return ("agent", int(m.group(1))) if m else (ident, None)
-
-
-def child_identity(child_name: str) -> str:
-    """The launcher's child name → identity: 'agent/3' → 'agent-3', 'world/0' → 'world'."""
-    role, _, i = child_name.partition("/")
-    return f"agent-{i}" if role == "agent" else role
+def identities(plan) -> list[str]:
+    """Every identity of a run plan: its routers first, then every other node's (``agent/3`` → ``agent-3``)."""
+    routers = [n.slug for n in plan.nodes if n.kind == "router"]
+    return routers + [n.slug for n in plan.nodes if n.kind != "router"]
 
 
 # ============================================================================ the ACL
 
-def acl(run: str, n_sensors: int, routers: list[str] = ("router",)) -> dict:
-    """The router's ``access_control`` block for run ``run`` (default deny)."""
-    p = f"ft/{run}/"
+def acl(plan) -> dict:
+    """The router's ``access_control`` block for a run plan (default deny): each node may put what it declares
+    it writes and read what it declares it reads (:mod:`agent.ports`), and nothing else."""
+    p = f"ft/{plan.run}/"
     rules: list[dict] = []
     subjects: list[dict] = []
     policies: list[dict] = []
 
-    def rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> str:
+    def rule(rid: str, messages: list[str], flows: list[str], keys) -> str:
         rules.append({"id": rid, "permission": "allow", "flows": flows, "messages": messages,
                       "key_exprs": [p + k for k in keys]})
         return rid
@@ -113,20 +77,18 @@ def acl(run: str, n_sensors: int, routers: list[str] = ("router",)) -> dict:
     common = [rule("watch-members", ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"], ["alive/**"]),
               rule("see-members", ["liveliness_token", "reply"], ["egress"], ["alive/**"]),
               rule("see-subscribers", ["declare_subscriber"], ["egress"], ["**"])]
-    for ident in identities(n_sensors):
-        if ident == "router":
+    for node in plan.nodes:
+        if node.kind == "router":
             continue
-        role, i = role_of(ident)
-        writes = [f"agent/{i}/**"] if role == "agent" else WRITES[role]
-        token = f"agent/{i}" if role == "agent" else TOKENS.get(role)
-        reads = [k.format(i=i) for k in READS[role]]
+        ident = node.slug
         own = []
-        own.append(rule(f"{ident}-read", ["declare_subscriber"], ["ingress"], reads))
-        own.append(rule(f"{ident}-recv", ["put"], ["egress"], reads))
-        if writes:
-            own.append(rule(f"{ident}-write", ["put"], ["ingress"], writes))
-        if token:
-            own.append(rule(f"{ident}-token", ["liveliness_token"], ["ingress"], [f"alive/{token}"]))
+        if node.reads:
+            own.append(rule(f"{ident}-read", ["declare_subscriber"], ["ingress"], node.reads))
+            own.append(rule(f"{ident}-recv", ["put"], ["egress"], node.reads))
+        if node.writes:
+            own.append(rule(f"{ident}-write", ["put"], ["ingress"], node.writes))
+        if node.member:
+            own.append(rule(f"{ident}-token", ["liveliness_token"], ["ingress"], [f"alive/{node.name}"]))
         subjects.append({"id": ident, "cert_common_names": [ident], "usernames": [ident]})
         policies.append({"id": ident, "rules": own + common, "subjects": [ident]})
     # router-to-router links of a mesh: trusted with the whole run (they carry everyone's traffic;
@@ -134,7 +96,7 @@ def acl(run: str, n_sensors: int, routers: list[str] = ("router",)) -> dict:
     trusted = rule("mesh-all", ALL_MESSAGES, ["ingress", "egress"], ["**"])
     alive = rule("mesh-alive", ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query", "reply"],
                  ["ingress", "egress"], ["alive/**"])
-    rids = sorted(set(routers))
+    rids = [n.slug for n in plan.nodes if n.kind == "router"]
     for r in rids:
         subjects.append({"id": r, "cert_common_names": [r], "usernames": [r]})
     policies.append({"id": "routers", "rules": [trusted, alive], "subjects": rids})
@@ -236,7 +198,7 @@ def load_json5(path: str | Path) -> dict:
     """A JSON5 config (a file, or the name of one in the package's ``broker_cfg/``) as a dict."""
     import json5
 
-    from .resources import config_file
+    from flocktrack.resources import config_file
 
     return json5.loads(config_file(path).read_text(encoding="utf-8"))
 
@@ -318,16 +280,28 @@ class KeySet:
 
     dir: Path
     run: str
-    n_sensors: int
+    identities: list[str]
     endpoint: str
     hosts: list[str] = field(default_factory=list)
-    routers: list[str] = field(default_factory=lambda: ["router"])
+    routers: list[str] = field(default_factory=lambda: ["router-0"])
 
     def client(self, ident: str) -> Path:
         return self.dir / "clients" / f"{ident}.json5"
 
-    def router(self, ident: str = "router") -> Path:
-        return self.dir / ("router.json5" if ident == "router" else f"{ident}.json5")
+    def router(self, ident: str | None = None) -> Path:
+        """The config of router ``ident`` (default: the plan's first router)."""
+        return self.dir / f"{ident or self.routers[0]}.json5"
+
+    def plan(self):
+        """The run plan the key set was made for."""
+        from flocktrack.plan import RunPlan
+
+        return RunPlan.from_json((self.dir / "plan.json").read_text())
+
+    def covers(self, plan) -> list[str]:
+        """The identities of ``plan`` this key set has no credentials for (empty: it covers the plan)."""
+        have = set(self.identities)
+        return [i for i in identities(plan) if i not in have]
 
     def password(self, ident: str) -> str:
         for line in (self.dir / "passwords.txt").read_text().splitlines():
@@ -367,66 +341,67 @@ def _issue_to(out: Path, ca_key, ca_cert, ident: str, hosts: list[str], days: in
     (out / "certs" / f"{ident}.pem").write_bytes(cert_pem(cert))
 
 
-def make_keys(out: str | Path, run: str, n_sensors: int, endpoint: str = "tls/localhost:7447",
-              hosts: list[str] = DEFAULT_HOSTS, routers: list[str] = ("router",), lease_ms: int = 2000,
-              days: int = 365) -> KeySet:
-    """Write a complete key set for run ``run`` with ``n_sensors`` sensors to ``out``.
-
-    ``routers``: the router identities (one per host in a mesh); each gets a certificate valid for
-    ``hosts`` and its own ``<ident>.json5`` besides the default ``router.json5``."""
+def make_keys(out: str | Path, plan, endpoint: str = "tls/localhost:7447", hosts: list[str] = DEFAULT_HOSTS,
+               lease_ms: int = 2000, days: int = 365) -> KeySet:
+    """Write a complete key set for the run plan ``plan`` to ``out``: a certificate and a password per node,
+    the ACL of :func:`acl`, one config per router (each valid for ``hosts``) and one per client."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    routers = list(dict.fromkeys(["router", *routers]))
+    routers = [n.slug for n in plan.nodes if n.kind == "router"]
     ca_key, ca_cert = make_ca(days)
     write_private(out / "ca.key", key_pem(ca_key))
     (out / "ca.pem").write_bytes(cert_pem(ca_cert))
     passwords: dict[str, str] = {}
-    idents = identities(n_sensors) + [r for r in routers if r != "router"]
+    idents = identities(plan)
     for ident in idents:
         _issue_to(out, ca_key, ca_cert, ident, list(hosts) if ident in routers else [], days)
         passwords[ident] = secrets.token_urlsafe(24)
     _issue_to(out, ca_key, ca_cert, WEB_IDENT, list(hosts), days)
     write_private(out / "passwords.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
-    block = acl(run, n_sensors, routers)
-    (out / "acl.json5").write_text(format_acl(block, f"access_control for run {run} ({n_sensors} sensors), generated "
-                                                     f"by `flocktrack keys`; it is also in router.json5"))
+    block = acl(plan)
+    (out / "acl.json5").write_text(format_acl(block, f"access_control for run {plan.run} ({len(idents)} identities), "
+                                                     f"generated by `flocktrack keys`; it is also in each router's config"))
+    (out / "plan.json").write_text(plan.to_json())
     port = endpoint.rsplit(":", 1)[-1]
     for r in routers:
         conf = router_config(out, r, passwords[r], [f"tls/[::]:{port}"], acl_block=block)
-        _dump(out / ("router.json5" if r == "router" else f"{r}.json5"), conf,
-              f"router {r} of run {run} (generated by flocktrack keys)")
+        _dump(out / f"{r}.json5", conf, f"router {r} of run {plan.run} (generated by flocktrack keys)")
     for ident in idents:
         if ident in routers:
             continue
         _dump(out / "clients" / f"{ident}.json5", client_config(out, ident, passwords[ident], endpoint, lease_ms),
-              f"client {ident} of run {run} (generated by flocktrack keys)")
-    manifest = {"run": run, "n_sensors": n_sensors, "endpoint": endpoint, "hosts": list(hosts),
-                "routers": routers, "identities": idents}
+              f"client {ident} of run {plan.run} (generated by flocktrack keys)")
+    manifest = {"run": plan.run, "endpoint": endpoint, "hosts": list(hosts), "routers": routers, "identities": idents}
     (out / "keys.json").write_text(json.dumps(manifest, indent=2) + "\n")
-    return KeySet(out, run, n_sensors, endpoint, list(hosts), routers)
+    return KeySet(out, plan.run, idents, endpoint, list(hosts), routers)
 
 
 def load_keys(path: str | Path) -> KeySet:
     path = Path(path)
     m = json.loads((path / "keys.json").read_text())
-    return KeySet(path, m["run"], int(m["n_sensors"]), m["endpoint"], m.get("hosts", []), m.get("routers", ["router"]))
+    if "identities" not in m or "n_sensors" in m:
+        raise ValueError(f"{path}: a key set of an older flocktrack (identities named otherwise); make a new one with "
+                         f"`flocktrack keys SCENARIO --out DIR`")
+    return KeySet(path, m["run"], list(m["identities"]), m["endpoint"], m.get("hosts", []), m["routers"])
 
 
 # ============================================================================ CLI
 
 def cmd_keys(args) -> int:
-    from agent.scenario import scenario_data
-    from agent.scenario import parse_scenario
+    from agent.scenario import parse_scenario, scenario_data
+
+    from flocktrack.plan import build_plan, load_placement
 
     data = scenario_data(args.scenario, args.set or [])
     sc = parse_scenario(data, args.scenario)
-    run = args.run or sc.run.name
+    placement = load_placement(args.placement) if args.placement else None
+    plan = build_plan(sc, run=args.run, placement=placement, dashboard=True)
     hosts = list(DEFAULT_HOSTS) + [h for h in (args.host or []) if h not in DEFAULT_HOSTS]
-    routers = ["router"] + [f"router-{r}" for r in (args.router or [])]
-    ks = make_keys(args.out, run, sc.sensors.n, endpoint=f"tls/{args.endpoint_host}:{args.port}", hosts=hosts,
-                   routers=routers)
-    print(f"wrote {ks.dir}: CA, {len(identities(sc.sensors.n)) + len(routers) - 1} certificates and passwords, "
-          f"acl.json5 and router.json5 for run {run!r} ({sc.sensors.n} sensors); clients/<id>.json5 connect to "
+    if placement is not None:
+        hosts += [h.address for h in placement.hosts if h.address not in hosts]
+    ks = make_keys(args.out, plan, endpoint=f"tls/{args.endpoint_host}:{args.port}", hosts=hosts)
+    print(f"wrote {ks.dir}: CA, {len(ks.identities)} certificates and passwords (one per node of the run plan), "
+          f"acl.json5 and the routers' configs for run {plan.run!r}; clients/<id>.json5 connect to "
           f"{ks.endpoint}.\nrun it: flocktrack run {args.scenario} --secure --keys {ks.dir} --out DIR",
           file=sys.stderr)
     return 0
@@ -442,25 +417,27 @@ def register(subparsers) -> None:
     k.add_argument("--endpoint-host", default="localhost", help="host name the clients dial (must be in the SANs)")
     k.add_argument("--host", action="append", metavar="NAME|IP",
                    help="extra router SAN (repeat): a host name or address the clients dial the router by")
-    k.add_argument("--router", action="append", metavar="HOST",
-                   help="an extra mesh router identity router-HOST (repeat)")
+    k.add_argument("--placement", metavar="HOSTS.toml",
+                   help="a placement: one router identity per host (router-HOST), its address among the SANs")
     k.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a scenario key")
     k.set_defaults(fn=cmd_keys)
 
 
 
 
-def prepare_keys(path: str | Path, run: str, n_sensors: int) -> KeySet:
-    """The key set in ``path`` (it must cover ``n_sensors`` sensors), or a new one for ``run`` there."""
+def prepare_keys(path: str | Path, plan) -> KeySet:
+    """The key set in ``path`` (it must cover every node of ``plan``), or a new one for ``plan`` there."""
     path = Path(path)
     if (path / "keys.json").exists():
         ks = load_keys(path)
-        if ks.n_sensors < n_sensors:
-            raise ValueError(f"{path} has credentials for {ks.n_sensors} sensors, the scenario has {n_sensors}: "
-                             f"make a new set with `flocktrack keys SCENARIO --out DIR`")
+        missing = ks.covers(plan)
+        if missing:
+            raise ValueError(f"{path} has no credentials for {', '.join(missing[:5])}"
+                             f"{' …' if len(missing) > 5 else ''} of this run: make a new set with "
+                             f"`flocktrack keys SCENARIO --out DIR`")
         return ks
-    return make_keys(path, run, n_sensors)
+    return make_keys(path, plan)
 
 
-__all__ = ["make_keys", "load_keys", "prepare_keys", "KeySet", "acl", "identities", "child_identity", "register",
+__all__ = ["make_keys", "load_keys", "prepare_keys", "KeySet", "acl", "identities", "register",
            "issue", "make_ca"]

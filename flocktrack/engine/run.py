@@ -17,14 +17,14 @@ from pathlib import Path
 
 import tomli_w
 
-from agent.assemble import extra_processes
 from agent.scenario import Scenario
 from dashboards.operator import new_token, operator_url
 
-from .build import design as make_design
-from .launch import Launcher, RestartPolicy
-from .metrics import summary_identity
-from .record import McapRecorder, metrics_from_recording, read_recording
+from flocktrack.engine.build import design as make_design
+from flocktrack.launch.launcher import LaunchOptions, Launcher, RunInputs
+from flocktrack.record.metrics import summary_identity
+from flocktrack.record.writer import McapRecorder
+from flocktrack.record.reader import metrics_from_recording, read_recording
 
 
 class Progress:
@@ -73,7 +73,7 @@ def run_inproc_to_dir(sc: Scenario, data: dict, out: Path, record: bool = False,
                       show_progress: bool = False) -> tuple[dict, dict]:
     from agent.bus import LocalBus
 
-    from .inproc import run_inproc
+    from flocktrack.engine.inproc import run_inproc
 
     _, _, dsg, meta_file = write_inputs(sc, data, out)
     bus = LocalBus()
@@ -99,41 +99,54 @@ def run_inproc_to_dir(sc: Scenario, data: dict, out: Path, record: bool = False,
     return summary, info
 
 
-def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = None, restart: str = "never",
+def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, *, port: int | None = None, restart: str = "never",
                      max_restarts: int = 3, quiet: bool = False, on_poll=None,
                      timeout_s: float | None = None, dashboard_port: int | None = None,
                      keep_dashboard: bool = False, secure_dir: str | Path | None = None,
-                     mesh=None, verbose: bool = False, on_results=None,
-                     dashboard_token: str | None = None) -> tuple[dict, dict]:
-    """Process per agent over an embedded router; metrics are recomputed from the recording.
+                     placement=None, host: str | None = None, verbose: bool = False, on_results=None,
+                     dashboard_token: str | None = None, startup_timeout_s: float = 90.0) -> tuple[dict, dict]:
+    """Process per node over an embedded router (the run plan's nodes: :mod:`flocktrack.plan`); metrics are
+    recomputed from the recording.
 
-    The terminal gets a live status line (flocktrack/status.py) and the children's warnings and errors
+    The terminal gets a live status line (flocktrack/launch/status.py) and the children's warnings and errors
     (every line with ``verbose``; nothing with ``quiet``); every line is in ``out/logs/``. The results
     (summary.json, metrics.csv, run.json) are written the moment the run ends — before a dashboard kept
     up with ``keep_dashboard`` — and ``on_results(summary, info)`` is called then.
 
-    ``secure_dir``: run secured (TLS + mTLS + user/password + ACL, see flocktrack/keys.py) with the key
+    ``secure_dir``: run secured (TLS + mTLS + user/password + ACL, see flocktrack/deploy/keys.py) with the key
     set in that directory — made there for this run if it holds none; an existing one fixes the run
     name its ACL was written for.
 
-    ``mesh``: a :class:`flocktrack.secure.Mesh` placing the processes on several hosts, each with its
-    own router (tests/test_multihost.py).
+    ``placement`` (a :class:`flocktrack.plan.Placement`) and ``host``: run host ``host``'s share of a flock
+    placed on several hosts — its router (meshed with the others'), its nodes and its recorder shard; the run
+    starts when every host's members are live (or gives up after ``startup_timeout_s``, exit 3), and
+    ``flocktrack merge`` makes one recording and summary of the hosts' directories.
 
     ``dashboard_token``: the dashboard's operator token (default: a new one per run; its link is printed
     once and the token kept 0600 in ``out/dashboard_token``). Without it the page is read-only."""
+    from flocktrack.plan import RestartPolicy as Policy
+    from flocktrack.plan import build_plan
+
     scen_file, design_file, dsg, meta_file = write_inputs(sc, data, out)
-    run = f"{sc.run.name}-{uuid.uuid4().hex[:8]}"
+    run = None if placement is not None else f"{sc.run.name}-{uuid.uuid4().hex[:8]}"
+    plan = build_plan(sc, run=run, placement=placement, dashboard=dashboard_port is not None,
+                      sensor_restart=Policy(restart, max_restarts))
     keys = None
     if secure_dir is not None:
-        from .keys import prepare_keys
+        from flocktrack.deploy.keys import prepare_keys
 
-        keys = prepare_keys(secure_dir, run, sc.sensors.n)
-        run = keys.run
-    launcher = Launcher(run, out, sc.sensors.n, scen_file, design_file, sc.run.mode, port=port,
-                        policy=RestartPolicy(restart, max_restarts), record_to=out / "recording.mcap",
-                        meta_file=meta_file, quiet=quiet, dashboard_port=dashboard_port, keys=keys,
-                        mesh=mesh, fusion="fusion" in extra_processes(sc), verbose=verbose,
-                        dashboard_token=(dashboard_token or new_token()) if dashboard_port is not None else None)
+        # (every identity a run may use — the dashboard's too: `flocktrack fault` speaks as the dashboard)
+        keys = prepare_keys(secure_dir, build_plan(sc, run=plan.run, placement=placement, dashboard=True))
+        plan = build_plan(sc, run=keys.run, placement=placement, dashboard=dashboard_port is not None,
+                          sensor_restart=Policy(restart, max_restarts))
+    plan_file = out / "plan.json"
+    plan_file.write_text(plan.to_json())
+    opts = LaunchOptions(out, RunInputs(scen_file, design_file, meta_file, plan_file), host=host, port=port,
+                         quiet=quiet, verbose=verbose, dashboard_port=dashboard_port, keys=keys,
+                         dashboard_token=(dashboard_token or new_token()) if dashboard_port is not None else None,
+                         startup_timeout_s=startup_timeout_s)
+    launcher = Launcher(plan, opts)
+    run = plan.run
     stop_signals = _stop_on_signals(launcher)
     t0 = time.perf_counter()
     t_end: float | None = None
@@ -155,7 +168,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
             status.close()
             status = None
         if keep_dashboard and dashboard_port is not None and rc == 0 and launcher.alive("dashboard/0"):
-            results = _zenoh_results(sc, out, launcher, rc, run, keys, t_end - t0)
+            results = _zenoh_results(sc, out, launcher, rc, t_end - t0)
             if on_results is not None:
                 on_results(*results)
             scheme = "https" if keys is not None else "http"   # a secure run's page is HTTPS (dashboards/tls.py)
@@ -171,7 +184,7 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, port: int | None = Non
         launcher.write_events(out / "events.json")
     wall = (t_end if t_end is not None else time.perf_counter()) - t0
     if results is None:
-        results = _zenoh_results(sc, out, launcher, rc, run, keys, wall)
+        results = _zenoh_results(sc, out, launcher, rc, wall)
         if on_results is not None:
             on_results(*results)
     else:   # the dashboard's linger: the exits of the processes stopped since are on the record now
@@ -197,18 +210,18 @@ def _announce(sc: Scenario, run: str, launcher: Launcher, keys, out: Path):
           f"faults: flocktrack fault VERB (--run {run} --connect {launcher.endpoint} when several runs go)", file=sys.stderr)
     if keys is not None:
         print(f"secure: TLS + mTLS + user/password + ACL with the keys in {keys.dir} (a client needs "
-              f"its identity's config, e.g. --config {keys.client('dashboard')})", file=sys.stderr)
+              f"its identity's config, e.g. --config {keys.client('dashboard-0')})", file=sys.stderr)
     return _status_line(sc, run, launcher, keys)
 
 
 def _status_line(sc: Scenario, run: str, launcher: Launcher, keys):
     """The live status line of a run (None if it cannot connect: the run goes on without it)."""
-    from .status import RunStatus
+    from flocktrack.launch.status import RunStatus
 
     rate = sc.run.speed / sc.run.T if sc.run.mode == "realtime" else None
     try:
         st = RunStatus(run, launcher.endpoint, sc.run.ticks, sc.sensors.n, sc.pos_dims, rate,
-                       config_file=str(keys.client("recorder")) if keys is not None else None,
+                       config_file=str(keys.client("recorder-0")) if keys is not None else None,
                        deadlines=lambda: launcher.deadlines,
                        processes=sum(1 for c in launcher.children.values() if not c.service))
     except Exception as exc:  # a status line is a convenience, never a reason to fail a run
@@ -218,14 +231,20 @@ def _status_line(sc: Scenario, run: str, launcher: Launcher, keys):
     return st
 
 
-def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, run: str, keys,
-                   wall: float) -> tuple[dict, dict]:
-    """summary.json + metrics.csv from the recording, and run.json."""
+def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, wall: float) -> tuple[dict, dict]:
+    """summary.json + metrics.csv from the recording, and run.json. A host of a placement holds only its own
+    nodes' shard of the recording: its summary comes from ``flocktrack merge`` of every host's directory."""
+    keys, plan = launcher.keys, launcher.plan
     rec = read_recording(out / "recording.mcap")          # read once: a long run's file is large
-    summary = metrics_from_recording(out / "recording.mcap", out, rec=rec)
-    info = {"transport": "zenoh", "run": run, "rc": rc, "wall_s": wall, "ticks_per_s": sc.run.ticks / wall,
+    if plan.multi_host:
+        summary = {"shard": launcher.host.name, "merge": "flocktrack merge DIR ... --out DIR (every host's run "
+                                                         "directory) for the run's summary"}
+    else:
+        summary = metrics_from_recording(out / "recording.mcap", out, rec=rec)
+    info = {"transport": "zenoh", "run": plan.run, "rc": rc, "wall_s": wall, "ticks_per_s": sc.run.ticks / wall,
             "router": launcher.endpoint, "recorded_messages": len(rec.messages), "recording_complete": rec.complete,
             "missed_deadlines": launcher.deadlines,
+            **({"host": launcher.host.name, "hosts": [h.name for h in plan.hosts]} if plan.multi_host else {}),
             **({"secure": True, "keys": str(keys.dir)} if keys is not None else {}),
             "restarts": {n: c.restarts for n, c in launcher.children.items() if c.restarts},
             "exits": {n: c.exits for n, c in launcher.children.items()}}
@@ -238,7 +257,7 @@ def replay_dashboard(path: str | Path, port: int = 8080) -> int:
     """Serve a recording in the dashboard (time slider) until Ctrl-C."""
     import subprocess
 
-    from .launch import die_with_parent
+    from flocktrack.launch.launcher import die_with_parent
 
     proc = subprocess.Popen([sys.executable, "-m", "dashboards", "--recording", str(path), "--port", str(port)],
                             preexec_fn=die_with_parent)
@@ -255,7 +274,7 @@ def replay(path: str | Path, connect: str | None = None, speed: float = 1.0, por
     """Re-publish a recording's messages (original pacing × 1/speed; speed 0 = as fast as possible)."""
     from agent.bus import ZenohBus
 
-    from .launch import open_router
+    from flocktrack.launch.launcher import open_router
 
     rec = read_recording(path)
     router = None

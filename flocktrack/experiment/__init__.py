@@ -1,0 +1,1 @@
+"""Experiments: sweeps of a scenario over a grid of overrides and seeds."""

@@ -1,0 +1,7 @@
+"""``python -m flocktrack.experiment``: the same as ``flocktrack sweep``."""
+
+import sys
+
+from .sweep import main
+
+sys.exit(main())

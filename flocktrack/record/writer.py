@@ -1,0 +1,126 @@
+"""The MCAP writer of a run: every message as JSON on a channel named by its relative key
+(``world/tick``, ``agent/3/estimate``, …) with a JSON Schema per message type; small chunks and an unbuffered
+file, so a crash loses at most the last chunk; the scenario (TOML text) and the pre-run design stored as
+metadata, so a recording is self-contained."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import Counter
+from pathlib import Path
+
+from agent import wire
+
+log = logging.getLogger(__name__)
+
+CHUNK_BYTES = 64 * 1024
+#: a chunk open longer than this is closed and written out: a crash (kill -9 of the recorder or of its
+#: launcher) loses at most the last FLUSH_S of messages (tests/test_recording_crash.py)
+FLUSH_S = 0.5
+
+
+class McapRecorder:
+    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "wb")
+        self._w = Writer(self._f, chunk_size=CHUNK_BYTES, compression=CompressionType.NONE)
+        self._packed = 0      # chunk indexes packed so far (_pack_chunk_indexes)
+        self._w.start(profile="flocktrack", library="flocktrack")
+        self._schemas = {name: self._w.register_schema(
+            name=f"flocktrack.{cls.__name__}", encoding="jsonschema",
+            data=json.dumps(wire.json_schema(cls)).encode()) for name, cls in wire.MESSAGE_TYPES.items()}
+        self._channels: dict[str, int] = {}
+        self.seq = 0
+        self.counts: Counter = Counter()
+        self.dropped: Counter = Counter()
+        self._finished = False
+        self._open_since: float | None = None   # when the chunk in progress got its first message
+        if metadata:
+            self._w.add_metadata("flocktrack", {k: str(v) for k, v in metadata.items()})
+        self._f.flush()
+
+    def write_raw(self, key: str, data: bytes, t_ns: int | None = None) -> None:
+        """Validate and record one wire message (invalid ones are counted, not recorded; the addressed copy
+        of an exchange payload, e.g. from an in-process bus's tap, is left out: it is recorded once)."""
+        if wire.addressed(key):
+            return
+        try:
+            msg = wire.decode(key, data)
+        except wire.WireError as exc:
+            self.dropped[exc.reason] += 1
+            return
+        self.write(key, msg, t_ns)
+
+    def write(self, key: str, msg: wire.Message, t_ns: int | None = None) -> None:
+        ch = self._channels.get(key)
+        if ch is None:
+            ch = self._channels[key] = self._w.register_channel(
+                topic=key, message_encoding="json", schema_id=self._schemas[msg.TYPE])
+        t = time.time_ns() if t_ns is None else t_ns
+        self._w.add_message(ch, log_time=t, data=msg.to_json_bytes(), publish_time=t,
+                            sequence=self.seq)
+        self.seq += 1
+        self.counts[key] += 1
+        if self._open_since is None:
+            self._open_since = time.monotonic()
+        self.tick()
+
+    def tick(self) -> None:
+        """Close the chunk in progress once it is FLUSH_S old (also called when no message comes): what is
+        recorded reaches the OS within FLUSH_S. Chunks still fill to CHUNK_BYTES at high rates."""
+        if self._open_since is not None and time.monotonic() - self._open_since >= FLUSH_S:
+            self.flush()
+
+    def flush(self) -> None:
+        """Close the chunk in progress now and hand everything written to the OS."""
+        self._w.flush()
+        self._open_since = None
+        self._pack_chunk_indexes()
+
+    def _pack_chunk_indexes(self) -> None:
+        """The writer keeps every chunk's index until :meth:`finish` writes the summary — as a record object
+        with a dict of per-channel offsets, ~2.8 KB of memory per chunk with ~40 channels: the recorder's RSS
+        grew 8 % over a 10-minute soak (docs/reliability.md). Each finished index is replaced by its
+        serialised bytes (~0.5 KB), written out unchanged at the end. (Message indexes stay: Foxglove's
+        indexed reader refuses a chunk index without them.) Needs the mcap writer's private list; without
+        it nothing is packed and the memory simply grows as before."""
+        from mcap.data_stream import RecordBuilder
+        from mcap.records import ChunkIndex
+
+        idx = getattr(self._w, "_Writer__chunk_indices", None)
+        if not isinstance(idx, list):
+            return
+        for j in range(self._packed, len(idx)):
+            if isinstance(idx[j], ChunkIndex):
+                b = RecordBuilder()
+                idx[j].write(b)
+                idx[j] = _PackedRecord(b.end())
+        self._packed = len(idx)
+
+    def finish(self) -> None:
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            self._w.finish()
+        finally:
+            self._f.close()
+
+
+class _PackedRecord:
+    """A record already serialised: ``write`` copies its bytes (what the writer's summary calls)."""
+
+    __slots__ = ("raw",)
+
+    def __init__(self, raw: bytes):
+        self.raw = raw
+
+    def write(self, stream) -> None:
+        stream.write(self.raw)
+
+
