@@ -74,7 +74,8 @@ def _flock_target(sc: Scenario) -> TargetRole:
                                   rng=rng if Q is not None else None)
     else:
         model = LinearTarget(sc.A, sc.B, sc.Qw, x0, rng)
-    return TargetRole(sc.run.ticks, model, t.kind == "intelligent", sc.pos_dims, t.estimate_source, T=sc.run.T)
+    return TargetRole(sc.run.ticks, model, t.kind == "intelligent", sc.pos_dims, estimate_source=t.estimate_source,
+                      T=sc.run.T)
 
 
 def _flock_sensor(sc: Scenario, i: int, design: dict[str, Any], rejoin: bool) -> SensorRole:
@@ -87,8 +88,8 @@ def _flock_sensor(sc: Scenario, i: int, design: dict[str, Any], rejoin: bool) ->
     D = sc.D_of(i)
     meas = LinearSensor(sc.C_of(i), sc.R_of(i)) if D is None else DisturbedSensor(sc.C_of(i), D, sc.sensors.v_std)
     return SensorRole(i, sc.run.ticks, sc.run.T, est, meas,
-                      rng_for(sc.run.seed, "agent", i, "measurement"), q0, None, ctrl, sc.pos_dims, rejoin,
-                      seed=sc.run.seed, catch_up=sc.run.mode == "realtime")
+                      rng=rng_for(sc.run.seed, "agent", i, "measurement"), q0=q0, controller=ctrl,
+                      pos_dims=sc.pos_dims, rejoin=rejoin, seed=sc.run.seed, catch_up=sc.run.mode == "realtime")
 
 
 def _uav_target(sc: Scenario) -> TargetRole:
@@ -116,8 +117,8 @@ def _uav_fusion_node(sc: Scenario, i: int, rejoin: bool) -> Role:
     track = UavTrack(uav_stream(sc), i, sc.run.T)
     a = sc.uav.admm()
     node = fusion_specs()[name].distributed(est, i, track_records(track, R, G), a["iterations"], a["rho"], sc.run.T)
-    return UavFusionNodeRole(i, sc.run.ticks, sc.run.T, node, track, LinearSensor(sc.C_of(i), R),
-                             rng_for(sc.run.seed, "agent", i, "measurement"), rejoin, seed=sc.run.seed,
+    return UavFusionNodeRole(i, sc.run.ticks, sc.run.T, node, LinearSensor(sc.C_of(i), R), track=track,
+                             rng=rng_for(sc.run.seed, "agent", i, "measurement"), rejoin=rejoin, seed=sc.run.seed,
                              catch_up=sc.run.mode == "realtime")
 
 

@@ -73,7 +73,7 @@ class LinkEmulator:
     (seconds) of delays in ms; ``counters`` (shared with the role, if given) counts what was done."""
 
     def __init__(self, i: int, seed: int, deliver: Deliver, clock: Callable[[], float],
-                 noise: np.ndarray | None = None, counters: Counter | None = None):
+                 noise: np.ndarray | None = None, *, counters: Counter | None = None):
         self.i = int(i)
         self.deliver, self.clock, self.noise = deliver, clock, noise
         self.counters: Counter = Counter() if counters is None else counters

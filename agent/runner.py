@@ -152,7 +152,7 @@ class WaitBudget:
         return due
 
 
-def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: StopFlag | None = None,
+def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: StopFlag | None = None, *,
           expect: Iterable[str] = (), startup_timeout_s: float = 60.0, linger_s: float = 0.5,
           idle_s: float = IDLE_POLL_S) -> int:
     """Run ``role`` until it finishes. ``deadline_s``: a :class:`WaitBudget`, or seconds per wait.
@@ -186,7 +186,7 @@ def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: Stop
             break
     role.start()
     try:
-        _loop(role, bus, name, budget, stop, idle_s)
+        _loop(role, bus, name, budget, stop, idle_s=idle_s)
     except Exception:
         write_stats(name, bus, role)
         raise
@@ -198,7 +198,7 @@ def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: Stop
     return 0
 
 
-def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, idle_s: float) -> None:
+def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, *, idle_s: float) -> None:
     last_key, due = None, float("inf")
     step_began, anchor = time.monotonic(), None
     while not role.finished and not stop.set:

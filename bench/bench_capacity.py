@@ -53,7 +53,7 @@ def run_size(n: int, hz: float, minutes: float) -> dict:
         missed_ticks = sorted({int(k) for f in (out / "logs").glob("*.log")
                                for k in re.findall(r"deadline on \((\d+), \d+\)", f.read_text(errors="replace"))})
         late = sum(int(json.loads(f.read_text()).get("role", {}).get("late_payloads", 0))
-                   for f in (out / "stats").glob("agent_*.json"))
+                   for f in (out / "stats").glob("agent-*.json"))
         world = json.loads(next((out / "stats").glob("world_*.json")).read_text()) \
             if list((out / "stats").glob("world_*.json")) else {}
     missed = int(info.get("missed_deadlines", 0))

@@ -140,7 +140,7 @@ def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
     with tempfile.TemporaryDirectory() as d:
         _summary, info = run_zenoh_to_dir(sc, data, Path(d), quiet=True, on_poll=hook, timeout_s=1800)
         rec = read_recording(Path(d) / "recording.mcap")
-        bus = [json.loads((Path(d) / "stats" / f"agent_{i}.json").read_text()) for i in range(n)]
+        bus = [json.loads((Path(d) / "stats" / f"agent-{i}.json").read_text()) for i in range(n)]
     t_tick = {m.k: t for key, m, t in rec.messages if key == "world/tick"}
     t_end = {}
     for key, m, t in rec.messages:

@@ -143,7 +143,7 @@ def analyse(name: str, sc, summary: dict, info: dict, samples: list[dict], work:
             series.append((row["t"], p["rss"], p["fds"], p["pid"]))
     procs = {nm: growth([(t, r, f) for t, r, f, _ in s]) for nm, s in sorted(per.items())}
     late = 0
-    for f in (work / "stats").glob("agent_*.json"):
+    for f in (work / "stats").glob("agent-*.json"):
         late += int(json.loads(f.read_text()).get("role", {}).get("late_payloads", 0))
     rmse = []
     with open(work / "metrics.csv") as fh:

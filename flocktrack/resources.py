@@ -143,3 +143,10 @@ def _unknown(arg: str) -> str:
     hint = did_you_mean(Path(arg).stem, names, quote="'")
     return (f"no scenario file {arg!r} and no bundled scenario of that name; {hint}bundled: {', '.join(names)} "
             f"(`flocktrack scenarios` describes them); a path to a .toml file works too")
+
+
+def load_json5(path: str | Path) -> dict:
+    """A JSON5 config (a file, or the name of one in the package's ``broker_cfg/``) as a dict."""
+    import json5
+
+    return json5.loads(config_file(path).read_text(encoding="utf-8"))

@@ -65,7 +65,7 @@ def test_committed_files_are_what_compose_generates():
     files = compose.render(DEMO, ROOT)
     stale = compose.stale(files, ROOT)
     assert set(files) == {"docker-compose.yml", "Dockerfile", "compose/scenario.toml", "compose/design.json",
-                          "compose/meta.json"}
+                          "compose/meta.json", "compose/plan.json"}
     assert not stale, "docker-compose.yml / Dockerfile / compose/ are stale; " \
                       "run `flocktrack compose scenarios/demo.toml`:\n" + "\n".join(stale)
     assert compose.main([str(DEMO), "--out", str(ROOT), "--check"]) == 0
@@ -74,7 +74,7 @@ def test_committed_files_are_what_compose_generates():
 def test_regenerated_into_a_tmp_dir_matches_the_committed_file(tmp_path, committed):
     assert compose.main([str(DEMO), "--out", str(tmp_path)]) == 0
     assert (tmp_path / "Dockerfile").read_text() == (ROOT / "Dockerfile").read_text()
-    for name in ("scenario.toml", "design.json", "meta.json"):   # the run's inputs do not depend on DIR
+    for name in ("scenario.toml", "design.json", "meta.json", "plan.json"):   # the run's inputs do not depend on DIR
         assert (tmp_path / "compose" / name).read_bytes() == (ROOT / "compose" / name).read_bytes(), name
     fresh = load((tmp_path / "docker-compose.yml").read_text())
     # the build section points from the output directory back to the sources and its own Dockerfile ...
@@ -99,9 +99,9 @@ def test_committed_file_is_valid_against_the_compose_specification(committed):
     validate(committed)
     # the schema bites: an unknown service key, a bad depends_on condition and a bad top-level key fail
     bad_key = json.loads(json.dumps(committed))
-    bad_key["services"]["router"]["healthchek"] = {}
+    bad_key["services"]["router-0"]["healthchek"] = {}
     bad_cond = json.loads(json.dumps(committed))
-    bad_cond["services"]["world"]["depends_on"]["router"]["condition"] = "service_ready"
+    bad_cond["services"]["world-0"]["depends_on"]["router-0"]["condition"] = "service_ready"
     bad_top = dict(committed, servics={})
     for bad in (bad_key, bad_cond, bad_top):
         with pytest.raises(jsonschema.ValidationError):
@@ -120,8 +120,8 @@ def test_structure_of_the_demo_deployment(committed):
     sc = load_scenario(DEMO)
     n, run = sc.sensors.n, sc.run.name
     svcs = committed["services"]
-    sensors = [f"sensor-{i}" for i in range(n)]
-    assert list(svcs) == ["router", "recorder", "dashboard", "target", *sensors, "world"]
+    sensors = [f"agent-{i}" for i in range(n)]
+    assert list(svcs) == ["router-0", "recorder-0", "dashboard-0", *sensors, "target-0", "world-0"]
     assert committed["x-flocktrack"]["run"] == run == "demo" and committed["x-flocktrack"]["sensors"] == n == 12
 
     # one service per sensor, each with its own id
@@ -133,42 +133,42 @@ def test_structure_of_the_demo_deployment(committed):
     # every agent connects to the router service and runs under the scenario's run name
     for name, s in svcs.items():
         text = " ".join(s["command"])
-        if name == "router":
+        if name == "router-0":
             assert s["command"][-1] == "compose_router.json5"   # shipped in the package (flocktrack.resources)
             continue
-        assert "--connect tcp/router:7447" in text and f"--run {run}" in text, name
+        assert "--connect tcp/router-0:7447" in text and f"--run {run}" in text, name
 
     # ports: only the dashboard publishes one, on the host's loopback (its buttons kill processes); the
     # router is reachable on the compose network
-    assert svcs["dashboard"]["ports"] == ["127.0.0.1:8080:8080"]
-    assert [k for k, s in svcs.items() if "ports" in s] == ["dashboard"]
-    assert svcs["router"]["expose"] == ["7447"]
+    assert svcs["dashboard-0"]["ports"] == ["127.0.0.1:8080:8080"]
+    assert [k for k, s in svcs.items() if "ports" in s] == ["dashboard-0"]
+    assert svcs["router-0"]["expose"] == ["7447"]
 
     # health checks: a TCP probe of the router, the liveliness token of every other member
-    assert svcs["router"]["healthcheck"]["test"][:4] == ["CMD", "python", "-m", "flocktrack.launch.health"]
-    assert "--tcp" in svcs["router"]["healthcheck"]["test"]
-    members = {"recorder": "recorder/0", "dashboard": "dashboard/0", "target": "target/0", "world": "world/0",
-               **{f"sensor-{i}": f"agent/{i}" for i in range(n)}}
+    assert svcs["router-0"]["healthcheck"]["test"][:4] == ["CMD", "python", "-m", "flocktrack.launch.health"]
+    assert "--tcp" in svcs["router-0"]["healthcheck"]["test"]
+    members = {"recorder-0": "recorder/0", "dashboard-0": "dashboard/0", "target-0": "target/0", "world-0": "world/0",
+               **{f"agent-{i}": f"agent/{i}" for i in range(n)}}
     for name, member in members.items():
         test = svcs[name]["healthcheck"]["test"]
         assert test[:4] == ["CMD", "python", "-m", "flocktrack.launch.health"], name
         assert test[test.index("--member") + 1] == member and test[test.index("--run") + 1] == run
-        assert test[test.index("--connect") + 1] == "tcp/router:7447"
-    assert "--http" in svcs["dashboard"]["healthcheck"]["test"]
+        assert test[test.index("--connect") + 1] == "tcp/router-0:7447"
+    assert "--http" in svcs["dashboard-0"]["healthcheck"]["test"]
 
     # restart policies: the launcher's defaults with `--restart on-failure --max-restarts 3` for sensors
-    expect = {"router": "unless-stopped", "recorder": "no", "dashboard": "on-failure:3", "target": "no",
-              "world": "no", **{s: "on-failure:3" for s in sensors}}
+    expect = {"router-0": "unless-stopped", "recorder-0": "no", "dashboard-0": "on-failure:3", "target-0": "no",
+              "world-0": "no", **{s: "on-failure:3" for s in sensors}}
     assert {k: s["restart"] for k, s in svcs.items()} == expect
 
     # depends_on: the router healthy before anything else; the recorder before the agents; the world last
-    assert "depends_on" not in svcs["router"]
+    assert "depends_on" not in svcs["router-0"]
     for name, s in svcs.items():
-        if name != "router":
-            assert s["depends_on"]["router"] == {"condition": "service_healthy"}, name
-    for name in ["target", *sensors, "world"]:
-        assert svcs[name]["depends_on"]["recorder"] == {"condition": "service_started"}
-    assert set(svcs["world"]["depends_on"]) == {"router", "recorder", "target", *sensors}
+        if name != "router-0":
+            assert s["depends_on"]["router-0"] == {"condition": "service_healthy"}, name
+    for name in ["target-0", *sensors, "world-0"]:
+        assert svcs[name]["depends_on"]["recorder-0"] == {"condition": "service_started"}
+    assert set(svcs["world-0"]["depends_on"]) == {"router-0", "recorder-0", "target-0", *sensors}
 
     # the run's inputs are file configs (the files in compose/, committed beside the compose file),
     # mounted read-only; the recorder writes to a named volume
@@ -182,10 +182,10 @@ def test_structure_of_the_demo_deployment(committed):
         inputs["design"])
     assert tomllib.loads(meta["scenario"]) == tomllib.loads(inputs["scenario"])
     mounts = {k: {c["target"] for c in s.get("configs", [])} for k, s in svcs.items()}
-    assert mounts["sensor-0"] == {"/etc/flocktrack/scenario.toml", "/etc/flocktrack/design.json"}
-    assert mounts["recorder"] == {"/etc/flocktrack/meta.json"}
-    assert svcs["recorder"]["volumes"] == ["recordings:/data"] and committed["volumes"] == {"recordings": {}}
-    assert "--out /data/recording.mcap" in " ".join(svcs["recorder"]["command"])
+    assert mounts["agent-0"] == {"/etc/flocktrack/scenario.toml", "/etc/flocktrack/design.json"}
+    assert mounts["recorder-0"] == {"/etc/flocktrack/meta.json", "/etc/flocktrack/plan.json"}
+    assert svcs["recorder-0"]["volumes"] == ["recordings:/data"] and committed["volumes"] == {"recordings": {}}
+    assert "--out /data/recording.mcap" in " ".join(svcs["recorder-0"]["command"])
     # references resolve (what `docker compose config` would reject otherwise)
     for name, s in svcs.items():
         assert set(s.get("depends_on", {})) <= set(svcs) - {name}, name
@@ -227,14 +227,14 @@ def test_host_network_base_image_and_data_dir(tmp_path):
         assert s["network_mode"] == "host" and "ports" not in s and "expose" not in s, name
         assert s["build"]["network"] == "host" and s["build"]["args"] == {"BASE_IMAGE": "me/base:1"}, name
         assert s["user"] == f"{os.getuid()}:{os.getgid()}", name
-        if name != "router":
+        if name != "router-0":
             cmd = " ".join(s["command"])
             assert "--connect tcp/127.0.0.1:17001" in cmd, name
-    assert svcs["router"]["command"][-2:] == ["--listen", "tcp/127.0.0.1:17001"]
-    dash = svcs["dashboard"]["command"]
+    assert svcs["router-0"]["command"][-2:] == ["--listen", "tcp/127.0.0.1:17001"]
+    dash = svcs["dashboard-0"]["command"]
     assert dash[dash.index("--host") + 1] == "127.0.0.1" and dash[dash.index("--port") + 1] == "18001"
-    assert svcs["recorder"]["volumes"] == ["/srv/out:/data"]
-    rec = svcs["recorder"]["command"]
+    assert svcs["recorder-0"]["volumes"] == ["/srv/out:/data"]
+    rec = svcs["recorder-0"]["command"]
     assert rec[rec.index("--summary") + 1] == "/data"
     # the default stays a bridge network without a user, build args or build network
     d = load(compose.render(DEMO, tmp_path)["docker-compose.yml"])["services"]
@@ -247,20 +247,20 @@ def test_secure_compose_mounts_each_services_own_credentials_only(tmp_path):
 
     keys, out = tmp_path / "keys", tmp_path / "out"
     assert cli_main(["keys", str(DEMO), "--set", "sensors.n=3", "--out", str(keys)]) == 0
-    # the bridge network's services dial "router": not in this key set's certificate → a precise refusal
+    # the bridge network's services dial "router-0": not in this key set's certificate → a precise refusal
     from flocktrack.deploy.compose_keys import KeysError
 
-    with pytest.raises(KeysError, match=r"not valid for 'router'.*--host router"):
+    with pytest.raises(KeysError, match=r"not valid for 'router-0'.*--host router-0"):
         compose.stage(DEMO, out, keys, sets=["sensors.n=3"])
-    with pytest.raises(KeysError, match="credentials for 3 sensors, the scenario has 12"):
+    with pytest.raises(KeysError, match=r"no credentials for agent-3, agent-4"):
         compose.stage(DEMO, out, keys, network="host")
     assert cli_main(["compose", str(DEMO), "--set", "sensors.n=3", "--out", str(out), "--network", "host",
                      "--router-port", "17002", "--secure", "--keys", str(keys)]) == 0
     doc = load((out / "docker-compose.yml").read_text())
     validate(doc)
     svcs = doc["services"]
-    idents = {"router": "router", "recorder": "recorder", "dashboard": "dashboard", "target": "target",
-              "world": "world", **{f"sensor-{i}": f"agent-{i}" for i in range(3)}}
+    idents = {s: s for s in ("router-0", "recorder-0", "dashboard-0", "target-0", "world-0",
+                             *(f"agent-{i}" for i in range(3)))}    # a service is named as its identity
     assert set(svcs) == set(idents)
     for name, ident in idents.items():
         mounts = svcs[name]["volumes"]
@@ -269,20 +269,20 @@ def test_secure_compose_mounts_each_services_own_credentials_only(tmp_path):
         d = out / "compose" / "keys" / ident
         assert (d.stat().st_mode & 0o777) == 0o700
         names = {p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file()}
-        extra = {"router": {"passwords.txt"}, "dashboard": {"web.pem", "web.key"}}.get(ident, set())
+        extra = {"router-0": {"passwords.txt"}, "dashboard-0": {"web.pem", "web.key"}}.get(ident, set())
         assert names == {"ca.pem", f"certs/{ident}.pem", f"certs/{ident}.key", "zenoh.json5"} | extra, ident
         for f in (f"certs/{ident}.key", "zenoh.json5", *(x for x in extra if x != "web.pem")):
             assert ((d / f).stat().st_mode & 0o777) == 0o600, (ident, f)
         conf = (d / "zenoh.json5").read_text()
         assert str(keys) not in conf and f"{compose.KEYS_MOUNT}/certs/{ident}.key" in conf, ident
-        if name != "router":
-            cmd = svcs[name]["command"][-2] if name.startswith("sensor-") else " ".join(svcs[name]["command"])
+        if name != "router-0":
+            cmd = svcs[name]["command"][-2] if name.startswith("agent-") else " ".join(svcs[name]["command"])
             assert f"--config {compose.KEYS_MOUNT}/zenoh.json5" in cmd and "tls/127.0.0.1:17002" in cmd, name
             assert "--config" in svcs[name]["healthcheck"]["test"], name
-    router_conf = json.loads("\n".join((out / "compose/keys/router/zenoh.json5").read_text().splitlines()[1:]))
+    router_conf = json.loads("\n".join((out / "compose/keys/router-0/zenoh.json5").read_text().splitlines()[1:]))
     assert router_conf["listen"]["endpoints"] == ["tls/127.0.0.1:17002"]
     assert router_conf["access_control"]["enabled"] and router_conf["access_control"]["default_permission"] == "deny"
-    assert svcs["dashboard"]["command"][-4:] == ["--tls-cert", f"{compose.KEYS_MOUNT}/web.pem", "--tls-key",
+    assert svcs["dashboard-0"]["command"][-4:] == ["--tls-cert", f"{compose.KEYS_MOUNT}/web.pem", "--tls-key",
                                                 f"{compose.KEYS_MOUNT}/web.key"]
     # --secure without --keys (and the reverse) is refused
     assert cli_main(["compose", str(DEMO), "--out", str(out), "--secure"]) == 2
@@ -290,19 +290,19 @@ def test_secure_compose_mounts_each_services_own_credentials_only(tmp_path):
 
 def test_a_fusion_scenario_gets_its_fusion_service():
     """The UAV scenarios run the fusion solver as the launcher does (its plan's `fusion/0`); the world
-    waits for it; a secure deployment of them is refused (no identity for it in `flocktrack keys`)."""
-    from flocktrack.deploy.compose_keys import KeysError
-
+    waits for it; a secure deployment gives it its own identity like every other node."""
     scen = ROOT / "scenarios" / "carrillo_uav.toml"
     svcs = load(compose.render(scen, ROOT)["docker-compose.yml"])["services"]
-    assert svcs["fusion"]["command"][:4] == ["python", "-m", "agent", "fusion"]
-    assert svcs["fusion"]["healthcheck"]["test"][svcs["fusion"]["healthcheck"]["test"].index("--member") + 1] == "fusion/0"
-    world = svcs["world"]["command"]
+    assert svcs["fusion-0"]["command"][:4] == ["python", "-m", "agent", "fusion"]
+    test = svcs["fusion-0"]["healthcheck"]["test"]
+    assert test[test.index("--member") + 1] == "fusion/0"
+    world = svcs["world-0"]["command"]
     assert [world[i + 1] for i, a in enumerate(world) if a == "--expect"] == ["recorder/0", "fusion/0"]
-    assert svcs["world"]["depends_on"]["fusion"] == {"condition": "service_started"}
-    assert "fusion" not in load(compose.render(DEMO, ROOT)["docker-compose.yml"])["services"]
-    with pytest.raises(KeysError, match="not supported"):
-        compose.render(scen, ROOT, secure=True, network="host")
+    assert svcs["world-0"]["depends_on"]["fusion-0"] == {"condition": "service_started"}
+    assert "fusion-0" not in load(compose.render(DEMO, ROOT)["docker-compose.yml"])["services"]
+    secure = load(compose.render(scen, ROOT, secure=True, network="host")["docker-compose.yml"])["services"]
+    assert f"./compose/keys/fusion-0:{compose.KEYS_MOUNT}:ro" in secure["fusion-0"]["volumes"]
+    assert f"--config {compose.KEYS_MOUNT}/zenoh.json5" in " ".join(secure["fusion-0"]["command"])
 
 
 def test_restart_policy_mapping():
@@ -319,24 +319,33 @@ def test_restart_policy_mapping():
 
 
 @pytest.mark.parametrize("restart,max_restarts", [("on-failure", 3), ("never", 3), ("on-failure", 7)])
-def test_services_are_the_launchers_children(tmp_path, restart, max_restarts):
-    """Same processes, same arguments, same restart policies as `flocktrack run` would spawn."""
+def test_services_are_the_plans_nodes_and_the_launchers_children(tmp_path, restart, max_restarts):
+    """Compose services == the plan's nodes (no launcher in compose), and each runs the same process, with the
+    same arguments and restart policy, as the launcher spawns for that node."""
+    from agent.scenario import load_scenario
+
+    from flocktrack.launch.launcher import LaunchOptions, RunInputs
+    from flocktrack.plan import build_plan
+
     files = compose.render(DEMO, ROOT, restart=restart, max_restarts=max_restarts)
     svcs = load(files["docker-compose.yml"])["services"]
     validate(load(files["docker-compose.yml"]))
+    sc = load_scenario(DEMO)
+    policy = RestartPolicy(restart, max_restarts)
+    deployed = build_plan(sc, supervisor=False, dashboard=True, sensor_restart=policy)
+    assert list(svcs) == [n.slug for n in deployed.nodes]
     conf = {"scenario": "/etc/flocktrack/scenario.toml", "design": "/etc/flocktrack/design.json",
-            "meta": "/etc/flocktrack/meta.json"}
-    launcher = Launcher("demo", tmp_path, 12, Path(conf["scenario"]), Path(conf["design"]), "realtime", port=7447,
-                        policy=RestartPolicy(restart, max_restarts), record_to=Path("/data/recording.mcap"),
-                        meta_file=Path(conf["meta"]), dashboard_port=8080)
-    plan = {c.name: c for c in launcher.plan()}
-    names = {"recorder/0": "recorder", "dashboard/0": "dashboard", "target/0": "target", "world/0": "world",
-             **{f"agent/{i}": f"sensor-{i}" for i in range(12)}}
-    assert set(plan) == set(names)
-    for child, service in names.items():
-        c, s = plan[child], svcs[service]
-        assert s["restart"] == compose.docker_restart(c.policy), service
-        want = [a.replace(launcher.endpoint, "tcp/router:7447") for a in c.argv[1:]]
+            "meta": "/etc/flocktrack/meta.json", "plan": "/etc/flocktrack/plan.json"}
+    plan = build_plan(sc, dashboard=True, sensor_restart=policy)
+    launcher = Launcher(plan, LaunchOptions(tmp_path, RunInputs(*(Path(conf[k]) for k in conf)), port=7447,
+                                            dashboard_port=8080))
+    children = {c.name: c for c in launcher.child_plan()}
+    # the launched processes are the plan's, but the launcher itself and its embedded router
+    assert set(children) == {n.name for n in plan.nodes if n.kind not in ("launcher", "router")}
+    for name, c in children.items():
+        s = svcs[plan.node(name).slug]
+        assert s["restart"] == compose.docker_restart(c.policy), name
+        want = [a.replace(launcher.endpoint, "tcp/router-0:7447") for a in c.argv[1:]]
         if "launcher/0" in want:   # the launcher's world waits for the launcher (fault acks); compose has none
             i = want.index("launcher/0")
             want = want[:i - 1] + want[i + 1:]
@@ -346,12 +355,14 @@ def test_services_are_the_launchers_children(tmp_path, restart, max_restarts):
         if cmd[:2] == ["sh", "-c"]:
             cmd = cmd[2].split("exec ", 1)[1].replace(' "$@"', "").split()
         got = cmd[1:]
-        # flags the containers need on top of the launcher's (no launcher scores the run: the recorder does)
-        for flag, _value in (("--host", "0.0.0.0"), ("--startup-timeout", "300"), ("--summary", "/data")):
-            if flag in got:
-                i = got.index(flag)
-                got = got[:i] + got[i + 2:]
-        assert sorted(_pairs(got)) == sorted(_pairs(want)), service
+        # flags that differ: the containers' own (no launcher scores the run: the recorder does) and the
+        # launcher's paths and timeouts
+        for argv in (got, want):
+            for flag in ("--host", "--startup-timeout", "--summary", "--out"):
+                if flag in argv:
+                    i = argv.index(flag)
+                    del argv[i:i + 2]
+        assert sorted(_pairs(got)) == sorted(_pairs(want)), name
         if c.rejoin_flag:
             assert c.rejoin_flag in s["command"][2]
 
@@ -372,7 +383,7 @@ def _pairs(argv: list[str]) -> list[tuple[str, ...]]:
 def test_restarted_sensor_container_rejoins(tmp_path):
     """The sensor's `sh -c` wrapper adds --rejoin from the second start of the same container on."""
     svcs = load(compose.render(DEMO, ROOT)["docker-compose.yml"])["services"]
-    sh, dash_c, script, name = svcs["sensor-3"]["command"]
+    sh, dash_c, script, name = svcs["agent-3"]["command"]
     marker = tmp_path / "started"
     script = script.replace(compose.RESTART_MARKER, str(marker)).replace("exec python ", "exec echo ")
     first = subprocess.run([sh, dash_c, script, name], capture_output=True, text=True, check=True).stdout.split()
@@ -403,8 +414,8 @@ def test_register_adds_the_compose_subcommand(tmp_path):
     assert args.fn(args) == 0
     doc = load((tmp_path / "docker-compose.yml").read_text())
     validate(doc)
-    assert doc["services"]["dashboard"]["ports"] == ["127.0.0.1:9090:8080"]
-    assert doc["services"]["sensor-0"]["restart"] == "no" and doc["services"]["sensor-0"]["image"] == "me/flock:1"
+    assert doc["services"]["dashboard-0"]["ports"] == ["127.0.0.1:9090:8080"]
+    assert doc["services"]["agent-0"]["restart"] == "no" and doc["services"]["agent-0"]["image"] == "me/flock:1"
     # the header says how to regenerate it
     assert "`flocktrack compose scenarios/demo.toml --image me/flock:1 --dashboard-port 9090 --restart never`" \
         in (tmp_path / "docker-compose.yml").read_text()
@@ -412,7 +423,7 @@ def test_register_adds_the_compose_subcommand(tmp_path):
     args = ap.parse_args(["compose", str(DEMO), "--out", str(tmp_path), "--dashboard-public"])
     assert args.fn(args) == 0
     text = (tmp_path / "docker-compose.yml").read_text()
-    assert load(text)["services"]["dashboard"]["ports"] == ["8080:8080"]
+    assert load(text)["services"]["dashboard-0"]["ports"] == ["8080:8080"]
     assert "`flocktrack compose scenarios/demo.toml --dashboard-public`" in text
 
 
@@ -432,7 +443,7 @@ def test_the_dashboards_logged_operator_link_names_the_port_a_user_opens(tmp_pat
     from dashboards.__main__ import operator_token, parser
 
     monkeypatch.delenv("FLOCKTRACK_DASHBOARD_TOKEN", raising=False)
-    cmd = load(compose.render(DEMO, tmp_path, **options)["docker-compose.yml"])["services"]["dashboard"]["command"]
+    cmd = load(compose.render(DEMO, tmp_path, **options)["docker-compose.yml"])["services"]["dashboard-0"]["command"]
     assert cmd[:3] == ["python", "-m", "dashboards"]
     published = options.get("network") != "host" and port != compose.DASHBOARD_PORT
     assert ("--public-port" in cmd) == published, cmd

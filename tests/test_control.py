@@ -133,5 +133,5 @@ def test_controls_end_to_end_over_zenoh(tmp_path):
     truth = {m.k: m.x for key, m, _ in rec.messages if key == "target/truth"}
     big = [k for k in y4 if np.linalg.norm(y4[k] - truth[k][:2]) > 40]
     assert 1 <= len(big) <= 5 and min(big) >= 110
-    stats = json.loads((tmp_path / "stats" / "world_0.json").read_text())["role"]
+    stats = json.loads((tmp_path / "stats" / "world-0.json").read_text())["role"]
     assert stats["controls"] >= 5

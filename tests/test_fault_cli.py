@@ -163,14 +163,14 @@ def test_logs_follow_a_growing_log_until_the_run_is_over(tmp_path):
 
     logs = tmp_path / "logs"
     logs.mkdir()
-    (logs / "agent_3.log").write_text("INFO one\n")
-    (logs / "world.log").write_text("INFO w\n")
+    (logs / "agent-3.log").write_text("INFO one\n")
+    (logs / "world-0.log").write_text("INFO w\n")
     out, running = io.StringIO(), [True]
     th = threading.Thread(target=show, args=(tmp_path, None, True, out), kwargs={"still_running": lambda: running[0],
                                                                                   "poll_s": 0.05})
     th.start()
     time.sleep(0.3)
-    with open(logs / "agent_3.log", "a") as f:
+    with open(logs / "agent-3.log", "a") as f:
         f.write("INFO two\nINFO thr")
         f.flush()
         time.sleep(0.3)
@@ -179,5 +179,5 @@ def test_logs_follow_a_growing_log_until_the_run_is_over(tmp_path):
     running[0] = False
     th.join(10)
     assert not th.is_alive()
-    assert out.getvalue().splitlines() == ["[agent/3] INFO one", "[world] INFO w", "[agent/3] INFO two",
+    assert out.getvalue().splitlines() == ["[agent/3] INFO one", "[world/0] INFO w", "[agent/3] INFO two",
                                            "[agent/3] INFO three"]

@@ -89,8 +89,8 @@ def test_world_sensor_and_target_faults_over_zenoh(tmp_path):
     ang = lambda a, b: abs(np.arctan2(a[0] * b[1] - a[1] * b[0], a @ b))
     assert ang(v[165], v[180]) > 5 * max(ang(v[145], v[160]), 1e-3)
     # receiver-side counters: delayed, duplicated, reordered payloads were really delayed/duplicated/reordered
-    stats = {p.stem: json.loads(p.read_text()).get("role", {}) for p in (tmp_path / "stats").glob("agent_*.json")}
-    assert stats["agent_2"].get("delayed_payloads", 0) > 0
+    stats = {p.stem: json.loads(p.read_text()).get("role", {}) for p in (tmp_path / "stats").glob("agent-*.json")}
+    assert stats["agent-2"].get("delayed_payloads", 0) > 0
     assert sum(s.get("duplicated_payloads", 0) for s in stats.values()) > 0
     assert sum(s.get("reordered_payloads", 0) for s in stats.values()) > 0
     assert summary["network_rmse"] is not None
@@ -152,9 +152,9 @@ def test_a_restarted_sensor_starts_from_its_neighbours_estimates_not_its_prior(t
     others = [float(rows[260][f"err_{i}"]) for i in range(sc.sensors.n) if i != 1]
     assert first < 3 * max(others) + 0.05, (first, others)                     # ... it starts where they are
     assert max(float(r["rmse"]) for k, r in rows.items() if k >= 10) < 0.3     # and nobody is dragged off
-    bus = {p.stem: json.loads(p.read_text()) for p in (tmp_path / "stats").glob("agent_*.json")}
+    bus = {p.stem: json.loads(p.read_text()) for p in (tmp_path / "stats").glob("agent-*.json")}
     stats = {name: b.get("role", {}) for name, b in bus.items()}
-    assert stats["agent_1"].get("reinitialised_from", 0) >= 1 and not stats["agent_1"].get("join_deadline")
+    assert stats["agent-1"].get("reinitialised_from", 0) >= 1 and not stats["agent-1"].get("join_deadline")
     assert sum(s.get("estimates_handed", 0) for s in stats.values()) >= 2
     # while it was dead nobody addressed payloads to it (they would pile up, held for a subscriber, and spill)
     assert not any(b.get("dropped", {}).get("unmatched") for b in bus.values()), {n: b.get("dropped") for n, b in bus.items()}
@@ -378,13 +378,13 @@ def test_delay_in_ms_in_realtime_and_live_injection_over_zenoh(tmp_path):
     assert len(inj) == 1 and inj[0].args["id"] == LIVE_ID0 and inj[0].args["delay_ms"] == 1.0
     assert fault[(LIVE_ID0, "start")] == inj[0].k >= 40
     assert fault[(LIVE_ID0, "heal")] >= inj[0].k + 15
-    stats = {p.stem: json.loads(p.read_text()).get("role", {}) for p in (tmp_path / "stats").glob("agent_*.json")}
-    s2, s5 = stats["agent_2"], stats["agent_5"]
+    stats = {p.stem: json.loads(p.read_text()).get("role", {}) for p in (tmp_path / "stats").glob("agent-*.json")}
+    s2, s5 = stats["agent-2"], stats["agent-5"]
     # 400 ± 100 ms ≫ the 23 ms round slot: every payload delayed to agent 2 came too late for its round
     assert s2["delayed_payloads"] > 50
     assert s2.get("late_payloads", 0) >= 0.95 * s2["delayed_payloads"]
     assert s5["delayed_payloads"] > 50                  # the live one was applied, at agent 5 only
-    assert all(s.get("delayed_payloads", 0) == 0 for name, s in stats.items() if name not in ("agent_2", "agent_5"))
+    assert all(s.get("delayed_payloads", 0) == 0 for name, s in stats.items() if name not in ("agent-2", "agent-5"))
 
 
 def _world_on_localbus(events, **over):

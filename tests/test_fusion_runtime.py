@@ -53,7 +53,7 @@ def test_distributed_fusion_over_zenoh_equals_inproc(tmp_path):
     assert f["admm/0"] == f["admm/1"] and f["admm/0"]["estimates"] > 100
     assert {"robust_mhe", "kalman_q1", "robust_kalman_q3"} <= set(f)
     for i, j in ((0, 1), (1, 0)):
-        st = json.loads((tmp_path / "z" / "stats" / f"agent_{i}.json").read_text())
+        st = json.loads((tmp_path / "z" / "stats" / f"agent-{i}.json").read_text())
         assert st["sent_by_key"][f"agent/{i}/to/{j}/xchg"] == 300 * 9     # round 0 + 8 ADMM iterations a tick
         assert st["role"].get("dropped_links", 0) == 0
     # the dashboard's model of the recording draws both UAVs' estimates and the central one

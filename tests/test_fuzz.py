@@ -110,7 +110,7 @@ def test_fuzz_live_sensor_process(tmp_path):
             proc.kill()
         bus.close()
         router.close()
-    stats = json.loads((tmp_path / "stats" / "agent_0.json").read_text())
+    stats = json.loads((tmp_path / "stats" / "agent-0.json").read_text())
     handled = stats["received"] + sum(stats["dropped"].values())
     assert handled >= 0.99 * subscribed, (handled, subscribed, stats)
     assert stats["handler_errors"] == 0, (stats, out.decode()[-6000:])

@@ -96,7 +96,7 @@ def test_main_job_over_zenoh_from_an_empty_directory(installed):
     assert {"summary.json", "recording.mcap", "events.json", "logs/", "stats/"} <= set(listed)
     assert all((out / name.rstrip("/")).exists() for name in listed), listed
     assert json.loads((out / "summary.json").read_text())["ticks_seen"] == 20
-    assert len(list((out / "logs").glob("agent_*.log"))) == 12
+    assert len(list((out / "logs").glob("agent-*.log"))) == 12
 
 
 def test_realtime_run_secured(installed):

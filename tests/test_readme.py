@@ -64,7 +64,7 @@ def test_readmes_outputs_are_what_a_real_run_writes(tmp_path, capsys):
     missing = [f for f in fields if f not in summary]
     assert not missing, f"README lists summary fields the run does not write: {missing}"
     assert "missed_deadlines" in json.loads((out / "run.json").read_text())
-    assert list((out / "logs").glob("agent_*.log")) and list((out / "stats").glob("agent_*.json"))
+    assert list((out / "logs").glob("agent-*.log")) and list((out / "stats").glob("agent-*.json"))
     # the terminal: a status line that counted to the end, and where the results are
     assert "tick 20/20" in cap.err and "sensors 12/12" in cap.err
     assert f"results in {out}/" in cap.out

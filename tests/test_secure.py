@@ -22,6 +22,7 @@ from agent import wire
 from agent.scenario import scenario_data
 from flocktrack.deploy.keys import acl, identities, issue, load_keys, make_ca, make_keys, register, cert_pem, key_pem
 from flocktrack.launch.launcher import free_port, open_router
+from flocktrack.plan import build_plan
 from flocktrack.record.reader import read_recording
 from flocktrack.engine.run import run_inproc_to_dir, run_zenoh_to_dir
 
@@ -32,9 +33,15 @@ RUN = "sec"
 
 # ============================================================================ helpers
 
+def plan_of(run: str, n: int, scenario: str = "gu_hu_normal.toml"):
+    """The run plan of a scenario with ``n`` sensors (and the dashboard) under run name ``run``."""
+    data = scenario_data(str(SCEN / scenario), [f"sensors.n={n}"])
+    return build_plan(parse_scenario(data, scenario), run=run, dashboard=True)
+
+
 @pytest.fixture(scope="module")
 def keyset(tmp_path_factory):
-    return make_keys(tmp_path_factory.mktemp("keys"), RUN, 6)
+    return make_keys(tmp_path_factory.mktemp("keys"), plan_of(RUN, 6))
 
 
 @pytest.fixture
@@ -63,14 +70,17 @@ def can_connect(conf: zenoh.Config) -> bool:
 
 
 class Tap:
-    """A subscriber session (default: the recorder's identity, which may read all of ft/<run>/**)."""
+    """A subscriber session (default: the recorder's identity, subscribed to what it reads: every node's writes
+    but the addressed copies)."""
 
-    def __init__(self, keyset, endpoint, ident="recorder", pattern=f"ft/{RUN}/**"):
+    def __init__(self, keyset, endpoint, ident="recorder-0", patterns=None):
         self.got: list[tuple[str, bytes]] = []
         self.tokens: list[tuple[str, bool]] = []
         self.s = zenoh.open(client_conf(keyset, ident, endpoint))
-        self.sub = self.s.declare_subscriber(pattern, lambda smp: self.got.append((str(smp.key_expr),
-                                                                                   smp.payload.to_bytes())))
+        patterns = patterns or [f"ft/{RUN}/{k}" for k in keyset.plan().node("recorder/0").reads]
+        self.subs = [self.s.declare_subscriber(pat, lambda smp: self.got.append((str(smp.key_expr),
+                                                                                 smp.payload.to_bytes())))
+                     for pat in patterns]
         self.lsub = self.s.liveliness().declare_subscriber(
             f"ft/{RUN}/alive/**", lambda smp: self.tokens.append((str(smp.key_expr), smp.kind == zenoh.SampleKind.PUT)),
             history=True)
@@ -79,7 +89,8 @@ class Tap:
         return {k for k, _ in self.got}
 
     def close(self):
-        self.sub.undeclare()
+        for sub in self.subs:
+            sub.undeclare()
         self.lsub.undeclare()
         self.s.close()
 
@@ -98,40 +109,53 @@ def test_keys_command_writes_a_complete_key_set(tmp_path):
                           "--host", "10.9.8.7", "--host", "hub.example"])
     assert args.fn(args) == 0
     ks = load_keys(out)
-    assert ks.run == "demo1" and ks.n_sensors == 10
+    assert ks.run == "demo1" and ks.identities == identities(ks.plan())
+    assert {f"agent-{i}" for i in range(10)} | {"router-0", "launcher-0", "world-0", "target-0", "recorder-0",
+                                               "dashboard-0"} == set(ks.identities)
     ca = x509.load_pem_x509_certificate((out / "ca.pem").read_bytes())
-    for ident in identities(10):
+    for ident in ks.identities:
         cert = x509.load_pem_x509_certificate(ks.cert(ident)[0].read_bytes())
         assert cert.subject.get_attributes_for_oid(x509.oid.NameOID.COMMON_NAME)[0].value == ident
         assert cert.issuer == ca.subject
         ca.public_key().verify(cert.signature, cert.tbs_certificate_bytes, ec.ECDSA(cert.signature_hash_algorithm))
         assert stat.S_IMODE(os.stat(ks.cert(ident)[1]).st_mode) == 0o600  # private keys are private
-        if ident != "router":
+        if ident != "router-0":
             conf = json.loads("\n".join(ks.client(ident).read_text().splitlines()[1:]))
             assert conf["transport"]["auth"]["usrpwd"]["user"] == ident
             assert conf["transport"]["link"]["tls"]["enable_mtls"] is True
-    sans = x509.load_pem_x509_certificate(ks.cert("router")[0].read_bytes()).extensions.get_extension_for_class(
+    sans = x509.load_pem_x509_certificate(ks.cert("router-0")[0].read_bytes()).extensions.get_extension_for_class(
         x509.SubjectAlternativeName).value
     assert {"localhost", "hub.example"} <= set(sans.get_values_for_type(x509.DNSName))
     assert {"127.0.0.1", "10.9.8.7"} <= {str(a) for a in sans.get_values_for_type(x509.IPAddress)}
     assert stat.S_IMODE(os.stat(out / "passwords.txt").st_mode) == 0o600
-    assert len({ks.password(i) for i in identities(10)}) == len(identities(10))
+    assert len({ks.password(i) for i in ks.identities}) == len(ks.identities)
     # the router's config is a valid Zenoh config and carries the ACL
     zenoh.Config.from_file(str(ks.router()))
 
 
-def test_acl_rules_follow_the_roles():
-    a = acl("r", 5)
+def test_acl_rules_are_the_nodes_declared_ports():
+    """Each identity may put exactly what its node declares it writes and read exactly what it reads."""
+    from agent.roles.sensor import SensorRole
+    from topology.world import WorldRole
+
+    plan = plan_of("r", 5)
+    a = acl(plan)
     rules = {r["id"]: r for r in a["rules"]}
     assert a["default_permission"] == "deny" and a["enabled"]
-    assert rules["agent-3-write"]["key_exprs"] == ["ft/r/agent/3/**"]
+    assert rules["agent-3-write"]["key_exprs"] == [f"ft/r/{k}" for k in SensorRole.PORTS.of(3).writes]
+    assert rules["agent-3-read"]["key_exprs"] == [f"ft/r/{k}" for k in SensorRole.PORTS.of(3).reads]
+    assert "ft/r/agent/*/to/3/xchg" in rules["agent-3-read"]["key_exprs"]      # its own inbox, no other
     assert rules["agent-3-write"]["messages"] == ["put"] and rules["agent-3-write"]["flows"] == ["ingress"]
-    assert rules["world-write"]["key_exprs"] == ["ft/r/world/**"]
-    assert rules["target-write"]["key_exprs"] == ["ft/r/target/**"]
-    assert rules["dashboard-write"]["key_exprs"] == ["ft/r/control/**"]
-    assert "recorder-write" not in rules
-    assert rules["launcher-write"]["key_exprs"] == ["ft/r/launcher/**"]   # its fault acks, nothing else
-    assert "ft/r/launcher/event" in rules["world-read"]["key_exprs"]
+    assert rules["world-0-write"]["key_exprs"] == [f"ft/r/{k}" for k in WorldRole.PORTS.writes]
+    assert rules["target-0-write"]["key_exprs"] == ["ft/r/target/truth", "ft/r/target/state"]
+    assert rules["dashboard-0-write"]["key_exprs"] == ["ft/r/control/**"]
+    assert "recorder-0-write" not in rules
+    assert rules["launcher-0-write"]["key_exprs"] == ["ft/r/launcher/event"]   # its fault acks, nothing else
+    assert "ft/r/launcher/event" in rules["world-0-read"]["key_exprs"]
+    for n in plan.nodes:     # every node's rules are its plan entry's
+        if n.kind != "router":
+            assert rules.get(f"{n.slug}-write", {}).get("key_exprs", []) == [f"ft/r/{k}" for k in n.writes], n.name
+            assert rules.get(f"{n.slug}-read", {}).get("key_exprs", []) == [f"ft/r/{k}" for k in n.reads], n.name
     assert rules["agent-3-token"]["key_exprs"] == ["ft/r/alive/agent/3"]
     subj = {s["id"]: s for s in a["subjects"]}
     assert subj["agent-3"] == {"id": "agent-3", "cert_common_names": ["agent-3"], "usernames": ["agent-3"]}
@@ -145,7 +169,8 @@ def test_committed_acl_template_is_the_generated_one():
     body = "\n".join(l for l in text.splitlines() if not l.startswith("//"))
     c = zenoh.Config()
     c.insert_json5("access_control", body)  # a valid access_control block for Zenoh
-    assert json.loads(body.replace(",\n  ]", "\n  ]").replace("],\n}", "]\n}")) == acl("demo", 12), \
+    assert json.loads(body.replace(",\n  ]", "\n  ]").replace("],\n}", "]\n}")) == acl(
+        plan_of("demo", 12, "demo.toml")), \
         "regenerate broker_cfg/acl.json5 (see its header)"
     zenoh.Config.from_file(str(ROOT / "broker_cfg" / "secure.json5"))
 
@@ -185,33 +210,35 @@ def test_only_clients_with_the_ca_a_certificate_and_their_password_connect(keyse
 
 def test_each_identity_puts_only_under_its_own_keys(keyset, router):
     tap = Tap(keyset, router)
-    sessions = {i: zenoh.open(client_conf(keyset, i, router)) for i in ("agent-3", "world", "target", "dashboard",
-                                                                        "recorder", "launcher")}
+    inbox4 = Tap(keyset, router, "agent-4", [f"ft/{RUN}/agent/*/to/4/xchg"])   # what is addressed to agent 4
+    sessions = {i: zenoh.open(client_conf(keyset, i, router)) for i in ("agent-3", "world-0", "target-0",
+                                                                        "dashboard-0", "recorder-0", "launcher-0")}
     settle()
     p = f"ft/{RUN}/"
     attempts = {
         "agent-3": ["agent/3/estimate", "agent/4/estimate", "agent/4/xchg", "agent/3x/estimate", "world/tick",
                     "world/end", "target/truth", "control/kill", "alive/agent/4", "agent/3/to/4/xchg",
                     "agent/4/to/3/xchg", "agent/4/to/5/xchg"],
-        "world": ["world/tick", "world/event", "agent/1/state", "target/truth", "control/pause"],
-        "target": ["target/truth", "target/state", "world/tick", "agent/0/estimate"],
-        "dashboard": ["control/pause", "control/kill", "world/tick", "agent/0/xchg"],
-        "recorder": ["world/tick", "agent/0/estimate", "control/pause"],
-        "launcher": ["control/kill", "world/event"],
+        "world-0": ["world/tick", "world/event", "agent/1/state", "target/truth", "control/pause"],
+        "target-0": ["target/truth", "target/state", "world/tick", "agent/0/estimate"],
+        "dashboard-0": ["control/pause", "control/kill", "world/tick", "agent/0/xchg"],
+        "recorder-0": ["world/tick", "agent/0/estimate", "control/pause"],
+        "launcher-0": ["control/kill", "world/event", "launcher/other"],
     }
     for ident, keys in attempts.items():
         for k in keys:
             sessions[ident].put(p + k, ident.encode())
     sessions["agent-3"].put("ft/otherrun/agent/3/estimate", b"agent-3")  # the ACL is bound to its run
     settle()
-    got = Counter((k[len(p):], v.decode()) for k, v in tap.got)
+    got = Counter((k[len(p):], v.decode()) for k, v in tap.got + inbox4.got)
     assert set(got) == {("agent/3/estimate", "agent-3"), ("agent/3/to/4/xchg", "agent-3"),
-                        ("world/tick", "world"), ("world/event", "world"),
-                        ("target/truth", "target"), ("target/state", "target"), ("control/pause", "dashboard"),
-                        ("control/kill", "dashboard")}, got
+                        ("world/tick", "world-0"), ("world/event", "world-0"),
+                        ("target/truth", "target-0"), ("target/state", "target-0"), ("control/pause", "dashboard-0"),
+                        ("control/kill", "dashboard-0")}, got
     for s in sessions.values():
         s.close()
     tap.close()
+    inbox4.close()
 
 
 def test_liveliness_tokens_only_for_oneself(keyset, router):
@@ -235,8 +262,8 @@ def test_subscriptions_only_to_what_the_role_reads(keyset, router):
     subs = [s3.declare_subscriber(pat, lambda smp: spy.append(str(smp.key_expr)))
             for pat in (f"ft/{RUN}/**", f"ft/{RUN}/agent/4/meas", f"ft/{RUN}/target/state", f"ft/{RUN}/world/tick",
                         f"ft/{RUN}/agent/*/xchg", f"ft/{RUN}/agent/*/to/5/xchg", f"ft/{RUN}/agent/*/to/3/xchg")]
-    w = zenoh.open(client_conf(keyset, "world", router))
-    t = zenoh.open(client_conf(keyset, "target", router))
+    w = zenoh.open(client_conf(keyset, "world-0", router))
+    t = zenoh.open(client_conf(keyset, "target-0", router))
     a4 = zenoh.open(client_conf(keyset, "agent-4", router))
     settle()
     w.put(f"ft/{RUN}/world/tick", b"1")
@@ -344,7 +371,7 @@ def test_an_impostor_with_agent_3s_credentials_has_no_effect_on_a_live_run(tmp_p
     data = scenario_data(str(SCEN / "gu_hu_intelligent.toml"), [], **{"run.ticks": 60, "run.mode": "lockstep"})
     sc = parse_scenario(data, "gu_hu_intelligent.toml")
     clean, _ = run_inproc_to_dir(sc, data, tmp_path / "in")
-    keys = make_keys(tmp_path / "keys", "impostor-run", sc.sensors.n)
+    keys = make_keys(tmp_path / "keys", build_plan(sc, run="impostor-run", dashboard=True))
     imp = Impostor(keys)
     try:
         summary, info = run_zenoh_to_dir(sc, data, tmp_path / "z", quiet=True, on_poll=imp, timeout_s=300,
@@ -366,7 +393,7 @@ def test_an_impostor_with_agent_3s_credentials_has_no_effect_on_a_live_run(tmp_p
     for f in (tmp_path / "z" / "stats").glob("*.json"):
         sent.update(json.loads(f.read_text()).get("sent_by_key", {}))
     sent = Counter({k: v for k, v in sent.items() if not wire.addressed(k)})   # (recorded once, unaddressed)
-    recorded = json.loads((tmp_path / "z" / "stats" / "recorder_0.json").read_text())["recorded_by_key"]
+    recorded = json.loads((tmp_path / "z" / "stats" / "recorder-0.json").read_text())["recorded_by_key"]
     assert dict(sent) == recorded
     rec = read_recording(tmp_path / "z" / "recording.mcap")
     assert rec.complete and [m.reason for k, m, _ in rec.messages if k == "world/end"] == ["done"]
@@ -374,5 +401,5 @@ def test_an_impostor_with_agent_3s_credentials_has_no_effect_on_a_live_run(tmp_p
     events = json.loads((tmp_path / "z" / "events.json").read_text())
     assert not [e for e in events if e["event"] in ("signal", "restart")], events
     assert all(v == [0] for v in info["exits"].values()), info["exits"]
-    for f in (tmp_path / "z" / "stats").glob("agent_*.json"):
+    for f in (tmp_path / "z" / "stats").glob("agent-*.json"):
         assert not json.loads(f.read_text()).get("dropped"), f

@@ -59,7 +59,7 @@ def test_zenoh_lockstep_equals_inproc_and_recording_is_faithful(tmp_path, name, 
     sent: Counter = Counter()
     for f in (tmp_path / "z" / "stats").glob("*.json"):
         sent.update(json.loads(f.read_text()).get("sent_by_key", {}))
-    recorded = json.loads((tmp_path / "z" / "stats" / "recorder_0.json").read_text())["recorded_by_key"]
+    recorded = json.loads((tmp_path / "z" / "stats" / "recorder-0.json").read_text())["recorded_by_key"]
     # ... once: the addressed copies of the exchange payloads (one per neighbour) are not recorded
     addressed = Counter({k: v for k, v in sent.items() if wire.addressed(k)})
     assert dict(sent - addressed) == recorded and sum(sent.values()) > 0

@@ -80,7 +80,7 @@ class WorldRole(Role):
     PORTS = Ports(writes=("world/tick", "world/event", "world/end"),
                   reads=("agent/*/state", "target/state", "control/**", "launcher/event"))
 
-    def __init__(self, n: int, ticks: int, T: float, positions0: np.ndarray, target_pos0: np.ndarray,
+    def __init__(self, n: int, ticks: int, T: float, positions0: np.ndarray, target_pos0: np.ndarray, *,
                  schedule: PeriodicSchedule | None = None, radius: float = np.inf,
                  sensing_range: float = np.inf, beta: float = 1.0, realtime: bool = False, speed: float = 1.0,
                  seed: int = 0, faults: FaultPlan | None = None, ack_timeout_s: float = 30.0):

@@ -49,7 +49,7 @@ class SensorRole(Role):
                   reads=("world/tick", "target/truth", "agent/*/to/{i}/xchg", "agent/*/to/{i}/estimate",
                          "control/outlier_burst", "world/event"))
 
-    def __init__(self, i: int, ticks: int, T: float, estimator: Estimator, sensor: LinearSensor,
+    def __init__(self, i: int, ticks: int, T: float, estimator: Estimator, sensor: LinearSensor, *,
                  rng: np.random.Generator, q0: np.ndarray, p0: np.ndarray | None = None,
                  controller=None, pos_dims: int = 2, rejoin: bool = False, seed: int = 0,
                  catch_up: bool = False):
@@ -71,7 +71,7 @@ class SensorRole(Role):
         self.inbox = RoundInbox(self.counters)               # exchange payloads by (tick, round)
         self.join = Rejoin(self.i, rejoin, self.counters)   # a restart's way back, and the handover to others
         self.link = LinkEmulator(self.i, self.seed, self._accept_xchg, time.monotonic, noise_factor(sensor),
-                                 self.counters)
+                                 counters=self.counters)
 
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)

@@ -25,7 +25,7 @@ class TargetRole(Role):
     #: estimates it evades
     PORTS = Ports(writes=("target/truth", "target/state"), reads=("world/tick", "world/event", "agent/*/estimate"))
 
-    def __init__(self, ticks: int, model, intelligent: bool, pos_dims: int, estimate_source: str = "mean",
+    def __init__(self, ticks: int, model, intelligent: bool, pos_dims: int, *, estimate_source: str = "mean",
                  T: float | None = None):
         super().__init__(ticks)
         self.model = model

@@ -92,10 +92,10 @@ class UavFusionNodeRole(SensorRole):
     sitting out and rejoining are the sensor's. Its measurements of tick k are those of :class:`UavRole`
     (published as ``meas``, for the recording and a central fusion process beside it); it flies its orbit."""
 
-    def __init__(self, i: int, ticks: int, T: float, estimator, track: UavTrack, sensor, rng, rejoin: bool = False,
-                 seed: int = 0, catch_up: bool = False):
-        super().__init__(i, ticks, T, estimator, sensor, rng, track.position(0.0), None, None, 2, rejoin, seed=seed,
-                         catch_up=catch_up)
+    def __init__(self, i: int, ticks: int, T: float, estimator, sensor, *, track: UavTrack, rng,
+                 rejoin: bool = False, seed: int = 0, catch_up: bool = False):
+        super().__init__(i, ticks, T, estimator, sensor, rng=rng, q0=track.position(0.0), pos_dims=2, rejoin=rejoin,
+                         seed=seed, catch_up=catch_up)
         self.track = track
 
     def _measure(self, tick: Tick, truth: Truth, b: float) -> np.ndarray:

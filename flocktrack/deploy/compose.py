@@ -343,14 +343,14 @@ def node_service(d: Deployment, node, router: str, after: dict[str, str], summar
         port = opts.dashboard_port if d.host_net else DASHBOARD_PORT
         host = "0.0.0.0" if (opts.dashboard_public or not d.host_net) else "127.0.0.1"
         public = [] if port == opts.dashboard_port else ["--public-port", str(opts.dashboard_port)]
-        tls = ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"] if opts.secure else []
         cmd[3:3] = ["--port", str(port), "--host", host, *public]
-        cmd += tls
         # (the page of a secure run is HTTPS with a certificate of the run's CA: its token check suffices)
         health_extra = [] if opts.secure else ["--http", f"http://localhost:{port}/"]
         if not d.host_net:   # its buttons kill processes and partition the flock: on the host's loopback only
             extra["ports"] = [f"{'' if opts.dashboard_public else '127.0.0.1:'}{opts.dashboard_port}:{DASHBOARD_PORT}"]
     cmd += [*d.common, *d.zconf]
+    if node.kind == "dashboard" and opts.secure:
+        cmd += ["--tls-cert", f"{KEYS_MOUNT}/web.pem", "--tls-key", f"{KEYS_MOUNT}/web.key"]
     if node.kind == "agent":
         cmd = _rejoin_on_restart(cmd, node.slug)
     return d.service(node.slug, cmd, restart=docker_restart(node.restart),

@@ -50,7 +50,7 @@ def import_argv(name: str, docker: str = "docker") -> list[str]:
 
 
 def build_base_image(name: str = DEFAULT_NAME, suite: str = DEFAULT_SUITE, ca: Path | None = HOST_CA,
-                     mirror: str | None = None, env: dict | None = None, progress=print) -> dict:
+                     mirror: str | None = None, *, env: dict | None = None, progress=print) -> dict:
     """Make the base image ``name``; returns ``{"image", "seconds", "bytes"}``. ``progress`` gets one line
     per stage of mmdebstrap (its ``I:`` lines)."""
     for tool, pkg in (("mmdebstrap", "mmdebstrap"), ("docker", "docker.io")):

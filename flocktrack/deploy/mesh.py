@@ -22,7 +22,7 @@ import sys
 import threading
 from pathlib import Path
 
-from flocktrack.deploy.keys import load_json5
+from flocktrack.resources import load_json5
 from flocktrack.resources import MissingDataError, config_file
 
 MESH_ROUTER = "mesh/router.json5"    # broker_cfg/ of the package: the router of one host of a mesh

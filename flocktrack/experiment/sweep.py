@@ -273,13 +273,14 @@ def run_sweep(cfg: SweepConfig) -> dict:
         except Exception as exc:  # figures are a view; never lose the CSV to a plotting problem
             fig_error = f"{type(exc).__name__}: {exc}"
             prog.note(f"figures failed: {fig_error}")
-    meta = _sweep_meta(cfg, specs, results, jobs, skipped, stale, len(tasks), started, wall)
+    meta = _sweep_meta(cfg, specs, results, jobs=jobs, skipped=skipped, stale=stale, executed=len(tasks),
+                       started=started, wall=wall)
     meta.update(figures=figures, figures_error=fig_error)
     (out / "sweep.json").write_text(json.dumps(meta, indent=2, default=_json_default) + "\n")
     return meta
 
 
-def _sweep_meta(cfg: SweepConfig, specs: list, results: dict, jobs: int, skipped: int, stale: int,
+def _sweep_meta(cfg: SweepConfig, specs: list, results: dict, *, jobs: int, skipped: int, stale: int,
                 executed: int, started: datetime, wall: float) -> dict:
     """``sweep.json``: the grid, what ran, what failed and how long it took."""
     failures = [{"run_id": r.run_id, "cell": {a.key: v for a, v in zip(cfg.axes, r.cell)}, "seed": r.seed,

@@ -125,7 +125,7 @@ def send(bus, verb: str, args: dict[str, Any], timeout_s: float = 5.0) -> Answer
                                  f"waiting, or has it ended?)")
     key, msg, at = answers[0]
     if key == "launcher/event":
-        return _launcher_answer(bus, verb, msg, members, end, at)
+        return _launcher_answer(bus, verb, msg, members, end=end, at=at)
     if msg.verb == "rejected":
         return Answer(REFUSED, f"refused: {msg.args.get('reason') or 'bad arguments'}", k=msg.k)
     fid = msg.args.get("id") if verb == "inject" else None
@@ -142,7 +142,7 @@ def when_applied(k: int | None, at: float) -> str:
     return f"at tick {k}" if k else f"at {time.strftime('%H:%M:%S', time.localtime(at))}"
 
 
-def _launcher_answer(bus, verb: str, msg: Control, members: dict[str, bool], end: float, at: float) -> Answer:
+def _launcher_answer(bus, verb: str, msg: Control, members: dict[str, bool], *, end: float, at: float) -> Answer:
     """The launcher's answer to kill / restart, at the newest tick the launcher had seen (k = 0 before the
     first tick: then the time it came is printed instead)."""
     name = f"agent/{int(msg.args['agent'])}" if msg.args.get("agent") is not None else "?"

@@ -32,16 +32,15 @@ def run_dir(run: str | None) -> Path:
 
 
 def member_of(path: Path) -> str:
-    """logs/agent_3.log → agent/3; logs/world.log → world."""
-    stem = path.stem
-    head, _, tail = stem.rpartition("_")
-    return f"{head}/{tail}" if head and tail.isdigit() else stem
+    """logs/agent-3.log → agent/3; logs/world-0.log → world/0 (a node's log is named by its slug)."""
+    head, _, tail = path.stem.partition("-")
+    return f"{head}/{tail}" if head and tail else path.stem
 
 
 def _names(p: Path) -> set[str]:
-    """What a user may call the process of a log file: agent/3, agent_3, agent_3.log; world, world/0."""
+    """What a user may call the process of a log file: agent/3, agent-3, agent-3.log; world/0, world."""
     m = member_of(p)
-    return {m, p.stem, p.name} | ({m + "/0"} if "/" not in m else set())
+    return {m, p.stem, p.name} | ({m.split("/")[0]} if m.endswith("/0") else set())
 
 
 def log_files(d: Path, member: str | None) -> list[Path]:
@@ -55,7 +54,7 @@ def log_files(d: Path, member: str | None) -> list[Path]:
     return hit
 
 
-def show(d: Path, member: str | None = None, follow: bool = False, out=sys.stdout,
+def show(d: Path, member: str | None = None, follow: bool = False, out=sys.stdout, *,
          still_running: Callable[[], bool] | None = None, poll_s: float = 0.2) -> int:
     """Print the logs (tagged ``[member]`` when there are several); with ``follow``, keep printing what is
     appended until Ctrl-C or until ``still_running()`` is False and nothing came for a second."""

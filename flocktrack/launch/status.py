@@ -17,19 +17,21 @@ import math
 import sys
 import time
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
 
-class RunStatus:
-    def __init__(self, run: str, endpoint: str, ticks: int, n: int, pos_dims: int, target_rate: float | None,
-                 config_file: str | None = None, stream=None, deadlines=lambda: 0, processes: int | None = None):
-        from agent.bus import ZenohBus
+class StatusBoard:
+    """What the line says, from the run's messages and its members — no transport (:class:`RunStatus` puts it
+    on the run's Zenoh bus). ``deadlines()``: the missed round deadlines so far; ``processes``: how many of the
+    run's processes declare a token; ``clock``: the time a tick is stamped with (the rate)."""
 
+    def __init__(self, ticks: int, n: int, pos_dims: int, *, target_rate: float | None = None,
+                 deadlines: Callable[[], int] = lambda: 0, processes: int | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         self.ticks, self.n, self.d, self.target_rate = int(ticks), int(n), int(pos_dims), target_rate
-        self.deadlines = deadlines
-        self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
+        self.deadlines, self.clock = deadlines, clock
         self.k = -1
         self.done = False                 # world/end seen: every tick is through
         self.alive = 0
@@ -39,22 +41,24 @@ class RunStatus:
         self._truth: dict[int, np.ndarray] = {}
         self._est: dict[int, dict[int, np.ndarray]] = {}
         self._stamps: deque[tuple[float, int]] = deque(maxlen=64)
-        self._last_draw = 0.0
-        self._last_decile = -1
-        self._width = 0
-        self.bus = ZenohBus(run, connect=endpoint, config_file=config_file)
-        self.bus.subscribe("world/tick", self._on_tick)
-        self.bus.subscribe("target/truth", self._on_truth)
-        self.bus.subscribe("agent/*/estimate", self._on_estimate)
-        self.bus.subscribe("world/end", self._on_end)
-        self.bus.watch_members(lambda name, alive: (self.members.add if alive else self.members.discard)(name))
+
+    def subscribe(self, bus) -> None:
+        """Listen on ``bus`` (a :class:`agent.bus.Bus`) to what the line is made of."""
+        bus.subscribe("world/tick", self._on_tick)
+        bus.subscribe("target/truth", self._on_truth)
+        bus.subscribe("agent/*/estimate", self._on_estimate)
+        bus.subscribe("world/end", self._on_end)
+
+    def on_member(self, name: str, alive: bool) -> None:
+        """A member's liveliness token appeared or went (``name``: e.g. ``agent/3``)."""
+        (self.members.add if alive else self.members.discard)(name)
 
     # ------------------------------------------------------------------ messages
     def _on_tick(self, key, msg) -> None:
         if msg.k > self.k:
             self.k = msg.k
             self.alive = sum(bool(a) for a in msg.alive)
-            self._stamps.append((time.monotonic(), msg.k))
+            self._stamps.append((self.clock(), msg.k))
             for d in (self._truth, self._est):          # keep a few ticks only
                 for kk in [kk for kk in d if kk < msg.k - 8]:
                     del d[kk]
@@ -101,6 +105,25 @@ class RunStatus:
         if self.target_rate and r is not None and r < 0.8 * self.target_rate and k > 10:
             parts.append("behind realtime")
         return " · ".join(parts)
+
+
+class RunStatus(StatusBoard):
+    """The :class:`StatusBoard` of run ``run`` through its own Zenoh client of the router at ``endpoint``, drawn
+    on ``stream`` (stderr)."""
+
+    def __init__(self, run: str, endpoint: str, ticks: int, n: int, pos_dims: int, target_rate: float | None,
+                 config_file: str | None = None, stream=None, deadlines=lambda: 0, processes: int | None = None):
+        from agent.bus import ZenohBus
+
+        super().__init__(ticks, n, pos_dims, target_rate=target_rate, deadlines=deadlines, processes=processes)
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self._last_draw = 0.0
+        self._last_decile = -1
+        self._width = 0
+        self.bus = ZenohBus(run, connect=endpoint, config_file=config_file)
+        self.subscribe(self.bus)
+        self.bus.watch_members(self.on_member)
 
     def poll(self) -> None:
         """Take in what arrived; redraw when due."""

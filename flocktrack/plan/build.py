@@ -75,12 +75,12 @@ def build_plan(sc: Scenario, *, run: str | None = None, placement: Placement | N
     single = placement is None
     for h in hosts:
         placed += [_on(n, h.name) for n in host_nodes(h.name, single, record=record, supervisor=supervisor)]
-    placed = _with_observers(placed, multi=not single)
+    placed = _ordered(_with_observers(placed, multi=not single))
     expects = [n.name for n in placed if n.member and n.kind in ("launcher", "recorder", *_extras(sc))]
     placed = [_replace(n, args=n.args + tuple(a for e in expects for a in ("--expect", e))) if n.kind == "world" else n
               for n in placed]
     name = run or (placement.run if placement is not None and placement.run else sc.run.name)
-    return RunPlan(name, sc.source, sc.run.mode, tuple(_ordered(placed)), tuple(hosts),
+    return RunPlan(name, sc.source, sc.run.mode, tuple(placed), tuple(hosts),
                    placement.source if placement is not None else None)
 
 

@@ -45,7 +45,7 @@ class MetricsCollector:
     ``summary``) computed from the run's :class:`agent.estimators.spec.RunTrace`."""
 
     def __init__(self, n: int, ticks: int, pos_dims: int, burn_in: int = 0,
-                 tmsee_lower: Sequence[float] | None = None, design: dict | None = None, T: float | None = None,
+                 tmsee_lower: Sequence[float] | None = None, *, design: dict | None = None, T: float | None = None,
                  summary_hook: SummaryHook | None = None):
         self.summary_hook = summary_hook
         self.n, self.ticks, self.d, self.burn_in = int(n), int(ticks), int(pos_dims), int(burn_in)
