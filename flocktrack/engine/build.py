@@ -61,8 +61,14 @@ class Roles:
         return [self.world, self.target, *self.sensors, *self.extra]
 
 
-def build_roles(sc: Scenario, dsg: dict[str, Any] | None = None) -> Roles:
+def build_roles(sc: Scenario, dsg: dict[str, Any] | None = None, plan=None) -> Roles:
+    """The role objects of the run plan's flock nodes (its sensors, target, world and extra roles), for one
+    process on LocalBus: the same nodes the launcher spawns one process each for."""
+    from flocktrack.plan.build import flock_nodes
+
     dsg = design(sc) if dsg is None else dsg
-    extra = [build_extra(sc, name) for name in extra_processes(sc)]
-    return Roles(build_world(sc), build_target(sc), [build_sensor(sc, i, dsg) for i in range(sc.sensors.n)], dsg,
-                 extra)
+    nodes = plan.nodes if plan is not None else flock_nodes(sc)
+    extras = set(extra_processes(sc))
+    sensors = [build_sensor(sc, int(n.id), dsg) for n in nodes if n.kind == "agent"]
+    extra = [build_extra(sc, n.kind) for n in nodes if n.kind in extras]
+    return Roles(build_world(sc), build_target(sc), sensors, dsg, extra)

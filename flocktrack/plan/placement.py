@@ -68,6 +68,13 @@ class Placement:
             if not hits:
                 raise ScenarioError(self.source, key, f"names no node of this run (its nodes: {_summary(names)})",
                                     "name a node of the scenario, a range such as \"agent/0-3\", or \"*\"")
+            m = _PATTERN.fullmatch(pattern)
+            if m["lo"] is not None:
+                absent = [i for i in range(int(m["lo"]), int(m["hi"]) + 1) if f"{m['kind']}/{i}" not in known]
+                if absent:
+                    raise ScenarioError(self.source, key, f"names {m['kind']}/{absent[0]}"
+                                                          f"{f'–{absent[-1]}' if len(absent) > 1 else ''}, which this "
+                                                          f"run does not have", f"end the range at the last one there is")
             for n in hits:
                 if n in chosen and chosen[n][0] == rank and chosen[n][2] != host:
                     raise ScenarioError(self.source, key, f"places {n} on {host!r}, but {chosen[n][1]!r} places it on "
@@ -167,15 +174,15 @@ def parse_placement(data: dict, source: str) -> Placement:
     place = []
     for pattern, host in place_t.items():
         key = f"place.{pattern!r}"
+        kind = pattern.split("/")[0]
+        if kind in PER_HOST:
+            raise ScenarioError(source, key, f"every host has its own {kind} ({kind}/HOST)", "remove the line")
         m = _PATTERN.fullmatch(pattern)
         if m is None:
             raise ScenarioError(source, key, "is not a node pattern", 'write a name ("world/0"), a range ("agent/0-3"), '
                                                                       'a kind ("agent/*") or "*"')
         if m["lo"] is not None and int(m["lo"]) > int(m["hi"]):
             raise ScenarioError(source, key, "is an empty range", "write the lower id first")
-        if m["kind"] in PER_HOST:
-            raise ScenarioError(source, key, f"every host has its own {m['kind']} ({m['kind']}/HOST)",
-                                "remove the line")
         if host not in hosts_t:
             raise ScenarioError(source, key, f"places on {host!r}, which is not a host of [hosts]",
                                 f"use one of {', '.join(hosts_t)}")
