@@ -8,10 +8,11 @@ is pulled: the host sees no carrier, the others see silence). Names are unique p
 namespaces, and with them every veth and the bridge, are deleted by :meth:`Network.close` (also on
 failure and at interpreter exit), after killing what still runs inside them.
 
-``python tests/netns.py mesh-run SPEC.json`` is run *inside* the first host by the tests: it runs a
-scenario with :func:`flocktrack.engine.run.run_zenoh_to_dir` and a :class:`flocktrack.deploy.mesh.Mesh` whose other
-hosts are reached with ``ip netns exec``, optionally cuts a host's link at a tick and heals it, and
-writes the timeline of what the first host saw (liveliness of every process, cut/heal instants).
+Each host runs its share of a placed flock with the user's own command, ``flocktrack run SCENARIO
+--placement hosts.toml --host NAME`` (:meth:`Network.flock`). ``python tests/netns.py watch SPEC.json`` is run
+*inside* the first host beside them: it follows the run on that host's router, optionally cuts a host's link at
+a tick and heals it, and writes the timeline of what the first host saw (liveliness of every process, ticks,
+cut/heal instants, switch counters).
 """
 
 from __future__ import annotations
@@ -78,6 +79,29 @@ class Network:
             _ip("-n", ns, "addr", "add", f"{self.addrs[i]}/24", "dev", "eth0")
             _ip("-n", ns, "link", "set", "eth0", "up")
 
+    def placement(self, path: Path, where: dict[str, str], names: list[str] | None = None, run: str = "mesh") -> Path:
+        """Write a placement of the hosts (``h0``, ``h1`` … or ``names``) at their addresses; ``where``:
+        node pattern → host name."""
+        names = names or [f"h{i}" for i in range(len(self.hosts))]
+        lines = [f'run = "{run}"']
+        for name, addr in zip(names, self.addrs):
+            lines += [f"[hosts.{name}]", f'address = "{addr}"']
+        lines.append("[place]")
+        lines += [f'"{pat}" = "{host}"' for pat, host in where.items()]
+        path.write_text("\n".join(lines) + "\n")
+        return path
+
+    def flock(self, placement: Path, names: list[str], scenario: str, out: Path, *args: str) -> list[subprocess.Popen]:
+        """Start ``flocktrack run SCENARIO --placement P --host NAME`` on every host (host i = ``names[i]``),
+        each writing to ``out/NAME``."""
+        procs = []
+        for i, name in enumerate(names):
+            log = open(out / f"{name}.out", "w")
+            procs.append(subprocess.Popen([*self.wrap(i), sys.executable, "-m", "flocktrack", "run", scenario,
+                                           "--placement", str(placement), "--host", name, "--out", str(out / name),
+                                           "--quiet", *args], cwd=str(ROOT), stdout=log, stderr=subprocess.STDOUT))
+        return procs
+
     def wrap(self, i: int) -> list[str]:
         """argv prefix that runs a command on host i."""
         return ["ip", "netns", "exec", self.hosts[i]]
@@ -127,15 +151,16 @@ def port_counters(switch: str, ports: list[str]) -> dict[str, dict[str, int]]:
 # ============================================================================ inside the first host
 
 class CutAndWatch:
-    """on_poll hook of the mesh run: watch liveliness and ticks from the first host; at tick
-    ``at_tick`` take the switch port ``port`` down, bring it up ``down_s`` later — and, with ``repeat``
-    > 1, cut it again ``every_s`` after each heal (bench/bench_netcut.py's trials)."""
+    """Follows a run from the first host (its router on loopback): liveliness and ticks; at tick ``at_tick``
+    takes the switch port ``port`` down, brings it up ``down_s`` later — and, with ``repeat`` > 1, cuts it
+    again ``every_s`` after each heal (bench/bench_netcut.py's trials)."""
 
     def __init__(self, spec: dict):
         self.spec = spec
         self.bus = None
         self.timeline: list[dict] = []
         self.seen_k = -1
+        self.ended = False
         self.cut_t: float | None = None
         self.heal_t: float | None = None
         self.cuts = 0
@@ -144,14 +169,21 @@ class CutAndWatch:
     def _note(self, what: str, **kw) -> None:
         self.timeline.append({"t": time.time(), "event": what, **kw})
 
-    def __call__(self, launcher) -> None:
+    def step(self) -> None:
         if self.bus is None:
             from agent.bus import ZenohBus
 
-            self.bus = ZenohBus(launcher.run, connect=launcher.endpoint)
+            import zenoh
+
+            try:   # (the host's router comes up with its launcher: until then, dial again)
+                self.bus = ZenohBus(self.spec["run"], connect=self.spec.get("connect", "tcp/127.0.0.1:7447"))
+            except zenoh.ZError:
+                time.sleep(0.2)
+                return
             self.bus.subscribe("world/tick", self._on_tick)
+            self.bus.subscribe("world/end", lambda key, msg: setattr(self, "ended", True))
             self.bus.watch_members(lambda name, alive: self._note("member", name=name, alive=alive))
-        self.bus.poll(0)
+        self.bus.poll(0.02)
         self._sample()
         cut = self.spec.get("cut")
         if not cut:
@@ -187,33 +219,26 @@ class CutAndWatch:
             self.bus.close()
 
 
-def mesh_run(spec_file: str) -> int:
-    """Run the spec's scenario over a mesh (this process is on host 0)."""
+def watch(spec_file: str) -> int:
+    """Follow the spec's run from this host until its end (or ``timeout_s``); write ``spec["out"]``."""
     sys.path.insert(0, str(ROOT))
-    from agent.scenario import parse_scenario
-    from agent.scenario import scenario_data
-    from flocktrack.engine.run import run_zenoh_to_dir
-    from flocktrack.deploy.mesh import Host, Mesh
-
     spec = json.loads(Path(spec_file).read_text())
-    out = Path(spec["out"])
-    data = scenario_data(spec["scenario"], spec.get("set", []))
-    sc = parse_scenario(data, spec["scenario"])
-    hosts = [Host(name=h["name"], wrap=h["wrap"], router_config=Path(h["router"]) if h.get("router") else None)
-             for h in spec["hosts"]]
-    mesh = Mesh(hosts, where=spec["where"], hub_config=Path(spec["hub_config"]))
     hook = CutAndWatch(spec)
+    end = time.monotonic() + spec.get("timeout_s", 240)
     try:
-        summary, info = run_zenoh_to_dir(sc, data, out, quiet=True, on_poll=hook, timeout_s=spec.get("timeout_s", 240),
-                                         mesh=mesh)
+        while not hook.ended and time.monotonic() < end:
+            hook.step()
+        t_end = time.monotonic() + 1.0
+        while time.monotonic() < t_end:   # the last members leaving
+            hook.step()
     finally:
         hook.close()
-    (out / "timeline.json").write_text(json.dumps(hook.timeline, indent=1))
-    return 0 if info.get("rc") == 0 else 1
+    Path(spec["out"]).write_text(json.dumps(hook.timeline, indent=1))
+    return 0 if hook.ended else 1
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "mesh-run":
-        sys.exit(mesh_run(sys.argv[2]))
-    print("usage: python tests/netns.py mesh-run SPEC.json", file=sys.stderr)
+    if len(sys.argv) == 3 and sys.argv[1] == "watch":
+        sys.exit(watch(sys.argv[2]))
+    print("usage: python tests/netns.py watch SPEC.json", file=sys.stderr)
     sys.exit(2)

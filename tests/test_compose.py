@@ -324,7 +324,7 @@ def test_services_are_the_plans_nodes_and_the_launchers_children(tmp_path, resta
     same arguments and restart policy, as the launcher spawns for that node."""
     from agent.scenario import load_scenario
 
-    from flocktrack.launch.launcher import LaunchOptions, RunInputs
+    from flocktrack.launch.commands import LaunchOptions, RunInputs
     from flocktrack.plan import build_plan
 
     files = compose.render(DEMO, ROOT, restart=restart, max_restarts=max_restarts)

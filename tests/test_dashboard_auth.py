@@ -10,14 +10,14 @@ import time
 
 import pytest
 
-from dashboard_clients import connect as _connect
-from dashboard_clients import operator_ui as _operator_ui
-from dashboard_clients import press as _press
-from dashboard_clients import report_camera as _report_camera
-from dashboard_clients import wait as _wait
+from dashboards.probe import connect as _connect
+from dashboards.probe import operator_ui as _operator_ui
+from dashboards.probe import press as _press
+from dashboards.probe import report_camera as _report_camera
+from dashboards.probe import wait as _wait
 from dashboards.operator import Operators, operator_url, write_token
 from dashboards.state import RunInfo
-from flocktrack.launch import free_port
+from flocktrack.launch.launcher import free_port
 
 
 def test_a_crafted_client_without_the_token_gets_no_controls_and_cannot_press_them():
@@ -108,11 +108,15 @@ def test_token_file_is_private_and_the_link_carries_the_token(tmp_path):
 def test_the_launcher_hands_its_dashboard_the_token_file_or_makes_it_read_only(tmp_path, token):
     from pathlib import Path
 
-    from flocktrack.launch import Launcher
+    from agent.scenario import load_scenario
+    from flocktrack.launch.commands import LaunchOptions, RunInputs
+    from flocktrack.launch.launcher import Launcher
+    from flocktrack.plan import build_plan
 
-    launcher = Launcher("r", tmp_path, 2, Path("s.toml"), None, "realtime", port=7447, dashboard_port=8080,
-                        dashboard_token=token)
-    argv = next(c.argv for c in launcher.plan() if c.name == "dashboard/0")
+    plan = build_plan(load_scenario(Path(__file__).parents[1] / "scenarios" / "demo.toml"), dashboard=True)
+    launcher = Launcher(plan, LaunchOptions(tmp_path, RunInputs(Path("s.toml")), port=7447, dashboard_port=8080,
+                                            dashboard_token=token))
+    argv = next(c.argv for c in launcher.child_plan() if c.name == "dashboard/0")
     if token is None:
         assert "--viewer-only" in argv and "--operator-token-file" not in argv
     else:
@@ -132,10 +136,16 @@ def test_a_secure_runs_page_is_https_with_the_runs_ca_and_the_token_still_decide
     import viser
     from websockets.sync.client import connect
 
-    from dashboards.live import DashboardUI
-    from flocktrack.keys import make_keys
+    from dashboards.ui import DashboardUI
+    from flocktrack.deploy.keys import make_keys
 
-    ks = make_keys(tmp_path / "keys", "auth", 2)
+    from pathlib import Path
+
+    from agent.scenario import load_scenario
+    from flocktrack.plan import build_plan
+
+    ks = make_keys(tmp_path / "keys", build_plan(load_scenario(Path(__file__).parents[1] / "scenarios" / "demo.toml"),
+                                                 run="auth", dashboard=True))
     pem, key = ks.web_cert()
     assert pem.is_file() and stat.S_IMODE(os.stat(key).st_mode) == 0o600
     ui = DashboardUI(RunInfo(n=2, link_range=12.0, name="auth"), port=free_port(), live=True,

@@ -288,8 +288,8 @@ def test_a_malformed_fault_event_is_refused_by_the_wire_and_counted_by_the_senso
         wire.fault_event(args)
     assert e.value.reason == "bad_field"
     est = SimpleNamespace(x=np.zeros(2), P=None, rounds=1)    # never runs a tick here
-    role = SensorRole(ME, 3, 0.1, est, LinearSensor(np.ones((1, 2)), np.eye(1)), rng_for(0, "agent", ME),
-                      np.zeros(2))
+    role = SensorRole(ME, 3, 0.1, est, LinearSensor(np.ones((1, 2)), np.eye(1)), rng=rng_for(0, "agent", ME),
+                      q0=np.zeros(2))
     bus = LocalBus()
     role.attach(bus)
     bus.publish("world/event", wire.Control(verb="fault", args=args))

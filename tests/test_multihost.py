@@ -1,16 +1,19 @@
-"""Several hosts without Docker: network namespaces joined by a switch (tests/netns.py), one Zenoh router
-per host (broker_cfg/mesh/), each host's processes on their local router, the routers meshed — a
-lockstep run across them gives the single-host numbers, and a host whose cable is pulled for a few
-seconds is noticed, carried on without, and rejoins.
+"""Several hosts without Docker: network namespaces joined by a switch (tests/netns.py), each host running its
+share of a placed flock with the user's command — ``flocktrack run SCENARIO --placement hosts.toml --host NAME``
+(one router per host, meshed from the placement; each host's processes on their local router; each host records
+its own nodes' shard) — and ``flocktrack merge`` of the three directories gives the single-host run's numbers.
+A host whose cable is pulled for a few seconds is noticed, carried on without, and rejoins.
 
 Needs root and iproute2 (tests/provision.py installs iproute2 as root when it is absent); skipped with
 the reason otherwise, and failed instead under CI.
 """
 
 import json
+import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from agent.scenario import parse_scenario
@@ -27,11 +30,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "scenarios"
 MESH_DIR = ROOT / "broker_cfg" / "mesh"
 HOSTS = ("a", "b", "c")
-# gu_hu_normal has 10 sensors: host a runs the world, the target, the recorder and sensors 0-3,
-# host b sensors 4-6, host c sensors 7-9
-WHERE = {f"agent/{i}": ("a" if i < 4 else "b" if i < 7 else "c") for i in range(10)}
+# gu_hu_normal has 10 sensors: host a runs the world, the target and sensors 0-3, host b sensors 4-6,
+# host c sensors 7-9 (and every host its own router, launcher and recorder)
+WHERE = {"agent/0-3": "a", "agent/4-6": "b", "agent/7-9": "c", "*": "a"}
 VICTIMS = [4, 5, 6]
-
 
 
 @pytest.fixture
@@ -45,26 +47,41 @@ def net():
         assert not any(ns in netns._ip("netns", "list").stdout for ns in [n.switch, *n.hosts])
 
 
-def mesh_run(net, tmp_path: Path, sets: list[str], cut: dict | None = None, timeout_s: float = 150,
-             sample_at: list[int] | None = None) -> dict:
-    """Run gu_hu_normal across the three hosts (``sets`` over the scenario); ``cut``: pull a cable
-    (tests/netns.py CutAndWatch); ``sample_at``: ticks at which the switch ports' byte counters are read
-    into the timeline (bench/bench_mesh_traffic.py)."""
-    cfgs = mesh_configs(list(zip(HOSTS, net.addrs)), tmp_path / "cfg")
-    spec = {"out": str(tmp_path / "run"), "scenario": str(SCEN / "gu_hu_normal.toml"), "set": sets,
-            "hosts": [{"name": h, "wrap": net.wrap(i) if i else [], "router": str(cfgs[h]) if i else None}
-                      for i, h in enumerate(HOSTS)],
-            "where": WHERE, "hub_config": str(cfgs["a"]), "timeout_s": timeout_s}
-    if cut:
-        spec["cut"] = {"switch": net.switch, **cut}
-    if sample_at:
-        spec["sample"] = {"switch": net.switch, "ports": [f"p{i}" for i in range(len(HOSTS))], "at_ticks": sample_at}
-    (tmp_path / "spec.json").write_text(json.dumps(spec))
-    # the launcher runs on host a: its embedded router is host a's router
-    r = net.run(0, sys.executable, str(ROOT / "tests" / "netns.py"), "mesh-run", str(tmp_path / "spec.json"),
-                cwd=str(ROOT), capture_output=True, text=True, timeout=timeout_s + 270)   # the run, then its scoring
-    assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
-    return json.loads((tmp_path / "run" / "run.json").read_text())
+def flock_run(net, tmp_path: Path, args: list[str], cut: dict | None = None, timeout_s: float = 240) -> Path:
+    """Run gu_hu_normal over the three hosts with the user's commands, one per host; ``cut``: pull a cable
+    (tests/netns.py CutAndWatch, run on host a beside the flock). Returns the merged directory."""
+    placement = net.placement(tmp_path / "hosts.toml", WHERE, list(HOSTS))
+    watch = None
+    if cut is not None:
+        spec = {"run": "mesh", "out": str(tmp_path / "timeline.json"), "timeout_s": timeout_s,
+                "cut": {"switch": net.switch, **cut}}
+        (tmp_path / "watch.json").write_text(json.dumps(spec))
+        watch = subprocess.Popen([*net.wrap(0), sys.executable, str(ROOT / "tests" / "netns.py"), "watch",
+                                  str(tmp_path / "watch.json")], cwd=str(ROOT))
+    procs = net.flock(placement, list(HOSTS), "gu_hu_normal", tmp_path, *args)
+    rcs = []
+    for p in procs:
+        try:
+            rcs.append(p.wait(timeout_s + 120))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            rcs.append(None)
+    if watch is not None:
+        watch.wait(60)
+    outs = {h: (tmp_path / f"{h}.out").read_text()[-2000:] for h in HOSTS}
+    assert rcs == [0, 0, 0], (rcs, outs)
+    for h in HOSTS:
+        info = json.loads((tmp_path / h / "run.json").read_text())
+        assert info["rc"] == 0 and info["recording_complete"] and info["host"] == h, info
+    merged = subprocess.run([sys.executable, "-m", "flocktrack", "merge", *(str(tmp_path / h) for h in HOSTS),
+                             "--out", str(tmp_path / "merged")], capture_output=True, text=True, timeout=300)
+    assert merged.returncode == 0, merged.stderr
+    return tmp_path / "merged"
+
+
+def _estimates(path: Path) -> dict[tuple[int, int], np.ndarray]:
+    return {(m.src, m.k): m.x for key, m, _ in read_recording(path).messages
+            if key.startswith("agent/") and key.endswith("/estimate")}
 
 
 def test_committed_mesh_configs_are_the_generated_ones(tmp_path):
@@ -80,16 +97,27 @@ def test_committed_mesh_configs_are_the_generated_ones(tmp_path):
     zenoh.Config.from_file(str(MESH_DIR / "client.json5"))
 
 
-def test_lockstep_across_hosts_equals_single_host(net, tmp_path):
+def test_a_flock_placed_on_three_hosts_merges_into_the_single_host_run(net, tmp_path):
     sets = ["run.ticks=60", 'run.mode="lockstep"']
-    info = mesh_run(net, tmp_path, sets)
-    assert info["rc"] == 0 and info["recording_complete"], info
-    assert {"router/b", "router/c"} <= set(info["exits"])
+    merged = flock_run(net, tmp_path, ["--set", "run.ticks=60", "--mode", "lockstep"])
+    # each host ran its own nodes (the plan's processes on it), and recorded only them
+    from flocktrack.plan import RunPlan
+
+    plan = RunPlan.from_json((tmp_path / "a" / "plan.json").read_text())
+    for h in HOSTS:
+        exits = json.loads((tmp_path / h / "run.json").read_text())["exits"]
+        assert set(exits) == {n.name for n in plan.processes(h)}, (h, exits)
+    assert {n.name for n in plan.processes("b")} == {"agent/4", "agent/5", "agent/6", "recorder/b"}
+    shard_b = {k for k, _, _ in read_recording(tmp_path / "b" / "recording.mcap").messages}
+    assert "agent/5/estimate" in shard_b and "agent/1/estimate" not in shard_b and "world/tick" not in shard_b
+    # the merge is the one-host run: the same summary and metrics, the same estimate of every node at every tick
     data = scenario_data(str(SCEN / "gu_hu_normal.toml"), sets)
-    run_inproc_to_dir(parse_scenario(data, "gu_hu_normal.toml"), data, tmp_path / "in")
-    assert json.loads((tmp_path / "run" / "summary.json").read_text()) == \
-        json.loads((tmp_path / "in" / "summary.json").read_text())
-    assert (tmp_path / "run" / "metrics.csv").read_bytes() == (tmp_path / "in" / "metrics.csv").read_bytes()
+    run_inproc_to_dir(parse_scenario(data, "gu_hu_normal.toml"), data, tmp_path / "in", record=True)
+    assert json.loads((merged / "summary.json").read_text()) == json.loads((tmp_path / "in" / "summary.json").read_text())
+    assert (merged / "metrics.csv").read_bytes() == (tmp_path / "in" / "metrics.csv").read_bytes()
+    one, many = _estimates(tmp_path / "in" / "recording.mcap"), _estimates(merged / "recording.mcap")
+    assert set(many) == set(one) and len(one) == 600
+    assert all(np.array_equal(many[k], one[k]) for k in one)
 
 
 @pytest.mark.slow
@@ -98,14 +126,15 @@ def test_cut_a_hosts_link_and_heal_it(net, tmp_path):
     # dead, runs through the 3 s cut at full lockstep speed (~25–40 ticks/s)
     ticks, down_s = 400, 3.0
     # lockstep with a short per-wait deadline: waiting on a vanished host costs ≤ 0.3 s per wait
-    info = mesh_run(net, tmp_path, [f"run.ticks={ticks}", 'run.mode="lockstep"', "run.deadline_s=0.3"],
-                    cut={"port": "p1", "at_tick": 40, "down_s": down_s})
-    assert info["rc"] == 0 and info["recording_complete"], info
-    assert all(v == [0] for n, v in info["exits"].items() if n.startswith(("agent", "world", "target"))), info
-    tl = json.loads((tmp_path / "run" / "timeline.json").read_text())
+    merged = flock_run(net, tmp_path, ["--set", f"run.ticks={ticks}", "--mode", "lockstep", "--set", "run.deadline_s=0.3"],
+                       cut={"port": "p1", "at_tick": 40, "down_s": down_s})
+    for h in HOSTS:
+        info = json.loads((tmp_path / h / "run.json").read_text())
+        assert all(v == [0] for n, v in info["exits"].items() if n.startswith(("agent", "world", "target"))), info
+    tl = json.loads((tmp_path / "timeline.json").read_text())
     cut = next(e for e in tl if e["event"] == "cut")
     heal = next(e for e in tl if e["event"] == "heal")
-    victims = {f"agent/{i}" for i in VICTIMS}
+    victims = {f"agent/{i}" for i in VICTIMS} | {"launcher/b", "recorder/b"}   # everything host b runs
 
     def member_times(alive: bool, after: float, before: float = float("inf")) -> dict[str, float]:
         out: dict[str, float] = {}
@@ -125,7 +154,7 @@ def test_cut_a_hosts_link_and_heal_it(net, tmp_path):
 
     # the recording: the world's ticks mark host b's sensors dead during the cut and alive after it,
     # their estimates stop at the cut and resume after the heal, everyone finishes the run
-    rec = read_recording(tmp_path / "run" / "recording.mcap")
+    rec = read_recording(merged / "recording.mcap")
     assert rec.complete
     alive = {m.k: m.alive for k, m, _ in rec.messages if k == "world/tick"}
     assert sorted(alive) == list(range(ticks))

@@ -263,7 +263,8 @@ def compose_plan(sc, opts: ComposeOptions, placement=None):
                       sensor_restart=RestartPolicy(opts.restart, opts.max_restarts))
 
 
-def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str, plan=None, host: str | None = None) -> dict:
+def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str, *, plan=None,
+                  host: str | None = None) -> dict:
     """The docker-compose document (a plain dict; ``$`` not yet escaped — see :func:`to_yaml`): one service
     per node of the run plan on ``host`` (default: the plan's first), named as the node (``agent/3`` →
     ``agent-3``). The run's inputs are configs read from the files :func:`input_path` names, relative to the

@@ -332,7 +332,7 @@ def _issue_to(out: Path, ca_key, ca_cert, ident: str, *, hosts: list[str], days:
     (out / "certs" / f"{ident}.pem").write_bytes(cert_pem(cert))
 
 
-def make_keys(out: str | Path, plan, endpoint: str = "tls/localhost:7447", hosts: list[str] = DEFAULT_HOSTS,
+def make_keys(out: str | Path, plan, endpoint: str = "tls/localhost:7447", hosts: list[str] = DEFAULT_HOSTS, *,
                lease_ms: int = 2000, days: int = 365) -> KeySet:
     """Write a complete key set for the run plan ``plan`` to ``out``: a certificate and a password per node,
     the ACL of :func:`acl`, one config per router (each valid for ``hosts``) and one per client."""

@@ -21,7 +21,8 @@ from agent.scenario import Scenario
 from dashboards.operator import new_token, operator_url
 
 from flocktrack.engine.build import design as make_design
-from flocktrack.launch.launcher import LaunchOptions, Launcher, RunInputs
+from flocktrack.launch.commands import LaunchOptions, RunInputs
+from flocktrack.launch.launcher import Launcher
 from flocktrack.record.metrics import summary_identity
 from flocktrack.record.writer import McapRecorder
 from flocktrack.record.reader import metrics_from_recording, read_recording
@@ -220,7 +221,7 @@ def _status_line(sc: Scenario, run: str, launcher: Launcher, keys):
 
     rate = sc.run.speed / sc.run.T if sc.run.mode == "realtime" else None
     try:
-        st = RunStatus(run, launcher.endpoint, sc.run.ticks, sc.sensors.n, sc.pos_dims, rate,
+        st = RunStatus(run, launcher.endpoint, sc.run.ticks, sc.sensors.n, sc.pos_dims, target_rate=rate,
                        config_file=str(keys.client("recorder-0")) if keys is not None else None,
                        deadlines=lambda: launcher.deadlines,
                        processes=sum(1 for c in launcher.children.values() if not c.service))

@@ -111,7 +111,7 @@ class RunStatus(StatusBoard):
     """The :class:`StatusBoard` of run ``run`` through its own Zenoh client of the router at ``endpoint``, drawn
     on ``stream`` (stderr)."""
 
-    def __init__(self, run: str, endpoint: str, ticks: int, n: int, pos_dims: int, target_rate: float | None,
+    def __init__(self, run: str, endpoint: str, ticks: int, n: int, pos_dims: int, *, target_rate: float | None,
                  config_file: str | None = None, stream=None, deadlines=lambda: 0, processes: int | None = None):
         from agent.bus import ZenohBus
 

@@ -17,6 +17,7 @@ from .placement import Placement
 #: the host of a run without a placement
 LOCAL = Host("local")
 NEVER = RestartPolicy("never")
+END = "world/end"
 CONTROL = "control/**"    #: the control plane (written by the dashboard and by `flocktrack fault`)
 
 
@@ -104,6 +105,7 @@ def _with_observers(nodes: list[Node], multi: bool) -> list[Node]:
             if any(m.kind == "world" for m in mine):
                 # the control plane: the dashboard's and `flocktrack fault`'s, on the world's timeline
                 reads[CONTROL] = None
+            reads[END] = None   # every recorder shard stops at the end (the merge keeps one copy)
             n = _replace(n, reads=tuple(compact(list(reads), nodes)))
         out.append(n)
     return out

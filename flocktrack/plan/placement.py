@@ -74,7 +74,7 @@ class Placement:
                 if absent:
                     raise ScenarioError(self.source, key, f"names {m['kind']}/{absent[0]}"
                                                           f"{f'–{absent[-1]}' if len(absent) > 1 else ''}, which this "
-                                                          f"run does not have", f"end the range at the last one there is")
+                                                          f"run does not have", "end the range at the last one there is")
             for n in hits:
                 if n in chosen and chosen[n][0] == rank and chosen[n][2] != host:
                     raise ScenarioError(self.source, key, f"places {n} on {host!r}, but {chosen[n][1]!r} places it on "
