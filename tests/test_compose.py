@@ -677,3 +677,33 @@ def test_compose_services_run_as_processes(tmp_path, scenario_file):
             assert live[k] == pytest.approx(ref[k], rel=1e-12, abs=1e-15), k
         elif k in live and not isinstance(ref[k], (dict, list)):
             assert live[k] == ref[k], k
+
+
+def test_a_placement_writes_one_deployment_per_host_with_its_nodes_and_its_router_of_the_mesh(tmp_path):
+    """`flocktrack compose SCENARIO --placement hosts.toml`: DIR/<host>/ per host; its services are the plan's
+    nodes on that host; its router listens on the host's address and dials the hosts listed before it."""
+    from agent.scenario import load_scenario
+    from flocktrack.plan import build_plan, load_placement
+
+    (tmp_path / "hosts.toml").write_text('run = "lab"\n[hosts.a]\naddress = "10.0.0.1"\n[hosts.b]\naddress = "10.0.0.2"\n'
+                                         'port = 7448\n[place]\n"agent/0-5" = "a"\n"agent/6-11" = "b"\n"*" = "a"\n')
+    placement = load_placement(tmp_path / "hosts.toml")
+    files = compose.render(DEMO, tmp_path / "out", placement=placement)
+    plan = build_plan(load_scenario(DEMO), placement=placement, supervisor=False, dashboard=True)
+    for h in ("a", "b"):
+        doc = load(files[f"{h}/docker-compose.yml"])
+        validate(doc)
+        assert list(doc["services"]) == [n.slug for n in plan.on(h)]
+        assert all(s["network_mode"] == "host" for s in doc["services"].values())
+        router = json.loads(files[f"{h}/compose/router.json5"])
+        assert router["listen"]["endpoints"] == [f"tcp/0.0.0.0:{plan.host(h).port}"]
+        assert router["connect"]["endpoints"] == ([] if h == "a" else ["tcp/10.0.0.1:7447"])
+        for name, s in doc["services"].items():
+            if not name.startswith("router-"):
+                assert f"--connect tcp/127.0.0.1:{plan.host(h).port}" in " ".join(s["command"]), name
+                assert "--run lab" in " ".join(s["command"]), name
+    b = load(files["b/docker-compose.yml"])["services"]
+    assert set(b) == {"router-b", "recorder-b", *(f"agent-{i}" for i in range(6, 12))}
+    assert "--summary" not in b["recorder-b"]["command"]     # a shard: `flocktrack merge` scores the run
+    world = load(files["a/docker-compose.yml"])["services"]["world-0"]["command"]
+    assert [world[i + 1] for i, a in enumerate(world) if a == "--expect"] == ["recorder/a", "recorder/b"]
