@@ -2,7 +2,7 @@
 
     python bench/bench_compose.py [--sensors 4] [--ticks 100] [--out bench/results/compose.json]
 
-Uses the running Docker engine, else starts one (tests/docker_engine.py: no bridge, host networking),
+Uses the running Docker engine, else starts one (flocktrack.testbed.docker: no bridge, host networking),
 and measures, with the generated files of ``flocktrack compose --network host --base-image …``:
 
 * ``base_image_s``: ``flocktrack image`` (mmdebstrap | docker import), from nothing;
@@ -28,10 +28,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))
 
-from docker_engine import Engine  # noqa: E402 - after the sys.path insert above
-from provision import docker_compose, docker_engine  # noqa: E402 - after the sys.path insert above
+from flocktrack.testbed.docker import Engine  # noqa: E402 - after the sys.path insert above
+from flocktrack.testbed.tools import docker_compose, docker_engine  # noqa: E402 - after the sys.path insert above
 
 from flocktrack.deploy import image  # noqa: E402 - after the sys.path insert above
 from flocktrack.cli import main as cli  # noqa: E402 - after the sys.path insert above
@@ -91,7 +91,7 @@ def main(argv=None) -> int:
             res["build_nothing_changed_s"] = timed(lambda: run("build"))
             t0 = time.monotonic()
             run("up", "-d", "--no-build")
-            world = run("ps", "-a", "-q", "world").strip()
+            world = run("ps", "-a", "-q", "world-0").strip()
             while eng.docker("inspect", "-f", "{{.State.StartedAt}}", world).stdout.startswith("0001"):
                 time.sleep(0.2)
             res["up_to_world_started_s"] = round(time.monotonic() - t0, 1)

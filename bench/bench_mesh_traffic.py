@@ -2,16 +2,16 @@
 
     python bench/bench_mesh_traffic.py [--ticks 300] [--out bench/results/mesh_traffic.json]
 
-The multi-host test's set-up (tests/netns.py, tests/test_multihost.py): three "hosts" (network namespaces on
-a switch), one Zenoh router each meshed by broker_cfg/mesh/, gu_hu_normal's 10 sensors split a: 0–3 (with
-the world, the target, the recorder and the launcher), b: 4–6, c: 7–9, in lockstep. Between two ticks of
+The multi-host test's set-up (flocktrack.testbed.netns): three "hosts" (network namespaces on a switch), each
+running `flocktrack run gu_hu_normal --placement hosts.toml --host NAME` — its own router of the mesh, launcher
+and recorder shard — with the 10 sensors split a: 0–3 (with the world and the target), b: 4–6, c: 7–9, in
+lockstep. Between two ticks of
 the run (``--from``, ``--to``), the switch's port counters give what each host sent (port rx) and received
 (port tx), in bytes and Ethernet frames — everything: Zenoh framing, TCP/IP headers, keep-alives, liveliness.
 
-The prediction reads the run's recording: every message of those ticks, its msgpack size (``wire.encode``),
-its publisher's host, and the hosts with a subscriber for its key (flocktrack/deploy/keys.py READS: the recorder,
-world, target and launcher on a; every sensor reads world/tick, world/end, world/event, target/truth and
-control/**), one copy per remote router (Zenoh routes a put once to each router with a matching
+The prediction reads the run's merged recording: every message of those ticks, its msgpack size
+(``wire.encode``), its publisher's host, and the hosts with a subscriber for its key (the run plan's reads of
+the nodes on each host), one copy per remote router (Zenoh routes a put once to each router with a matching
 subscription). Exchange payloads are addressed: sensor i sends one copy per sensor j that hears
 it by tick k's link table, on ``agent/i/to/j/xchg`` — a copy crosses only when j is on another host — and
 one observer copy ``agent/i/xchg`` to the recorder's host. ``broadcast`` is what the same run would send
@@ -34,35 +34,28 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
 
-import netns  # noqa: E402 - from tests/, after the sys.path lines above
-from test_multihost import HOSTS, WHERE, mesh_run  # noqa: E402 - same
-
-from agent import wire  # noqa: E402 - after the sys.path lines above
+from agent import wire  # noqa: E402 - after the sys.path line above
+from agent.bus import key_matches  # noqa: E402 - same
+from flocktrack.plan import RunPlan  # noqa: E402 - same
 from flocktrack.record.reader import read_recording  # noqa: E402 - same
+from flocktrack.testbed import netns  # noqa: E402 - same
 
-#: what a sensor subscribes to besides its own inboxes (flocktrack/deploy/keys.py READS["agent"])
-SENSOR_READS = ("world/tick", "world/event", "world/end", "target/truth")
-HUB = HOSTS[0]          # the world, the target, the recorder and the launcher run on host a
-
-
-def host_of(topic: str) -> str:
-    """The host of a recorded message's publisher."""
-    parts = topic.split("/")
-    return WHERE[f"agent/{parts[1]}"] if parts[0] == "agent" else HUB
+HOSTS = ["a", "b", "c"]
+WHERE = {"agent/0-3": "a", "agent/4-6": "b", "agent/7-9": "c", "*": "a"}
 
 
-def subscriber_hosts(topic: str) -> set[str]:
-    """Hosts with a subscriber for an observed (not addressed) key: the hub always (the recorder reads
-    everything), every sensor's host for what sensors read."""
-    hosts = {HUB}
-    if topic in SENSOR_READS or topic.startswith("control/"):
-        hosts |= set(WHERE.values())
-    return hosts
+def host_of(plan: RunPlan, topic: str) -> str:
+    """The host of a recorded message's publisher: the node whose declared writes hold the key."""
+    return next(n.host for n in plan.nodes if any(key_matches(w, topic) for w in n.writes))
 
 
-def predict(recording: Path, k0: int, k1: int) -> dict:
+def subscriber_hosts(plan: RunPlan, topic: str) -> set[str]:
+    """Hosts with a subscriber for an observed (not addressed) key: the hosts of the nodes that read it."""
+    return {n.host for n in plan.nodes if any(key_matches(r, topic) for r in n.reads)}
+
+
+def predict(recording: Path, plan: RunPlan, k0: int, k1: int) -> dict:
     """Messages and msgpack bytes per directed host link over ticks [k0, k1): addressed and broadcast."""
     rec = read_recording(recording)
     ticks = {m.k: m for topic, m, _ in rec.messages if topic == "world/tick"}
@@ -81,8 +74,8 @@ def predict(recording: Path, k0: int, k1: int) -> dict:
         size = len(wire.encode(msg))
         kind = topic.split("/")[-1]
         sizes[kind].append(size)
-        src = host_of(topic)
-        for dst in subscriber_hosts(topic):
+        src = host_of(plan, topic)
+        for dst in subscriber_hosts(plan, topic):
             add("addressed", src, dst, size)
             if kind != "xchg":
                 add("broadcast", src, dst, size)
@@ -90,7 +83,7 @@ def predict(recording: Path, k0: int, k1: int) -> dict:
             tick = ticks[msg.k]
             hearers = [j for j in range(tick.n) if j != msg.src and msg.src in tick.links[j]]
             for j in hearers:                      # one addressed copy per sensor that hears the sender
-                add("addressed", src, WHERE[f"agent/{j}"], size)
+                add("addressed", src, plan.node(f"agent/{j}").host, size)
             for dst in HOSTS:                      # before addressing: to every host (sensors or recorder)
                 add("broadcast", src, dst, size)
     n = k1 - k0
@@ -139,21 +132,21 @@ def main(argv: list[str] | None = None) -> int:
     print(f"[mesh] gu_hu_normal on 3 hosts, {a.ticks} lockstep ticks; counting ticks {a.k0}–{a.k1}", flush=True)
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="meshtraffic_") as d, netns.Network(len(HOSTS)) as net:
-        info = mesh_run(net, Path(d), [f"run.ticks={a.ticks}", 'run.mode="lockstep"'], sample_at=[a.k0, a.k1],
-                        timeout_s=600)
-        timeline = json.loads((Path(d) / "run" / "timeline.json").read_text())
+        r = netns.placed_run(net, WHERE, "gu_hu_normal", Path(d), "--ticks", str(a.ticks), "--mode", "lockstep",
+                             names=HOSTS, sample_at=[a.k0, a.k1], timeout_s=600)
+        info = {"rc": max((rc if rc is not None else 124) for rc in r["rcs"])}
+        timeline = json.loads((Path(d) / "timeline.json").read_text())
+        plan = RunPlan.from_json((Path(d) / "a" / "plan.json").read_text())
         k0, k1, meas = measured(timeline)
-        pred = predict(Path(d) / "run" / "recording.mcap", k0, k1)
+        pred = predict(r["merged"] / "recording.mcap", plan, k0, k1)
     addressed, broadcast = per_host(pred["addressed"]), per_host(pred["broadcast"])
     hosts = {h: {"measured": meas[h], "predicted_addressed": addressed[h], "predicted_broadcast": broadcast[h],
                  "measured_over_predicted_bytes": {
                      d: round(meas[h][f"{d}_bytes_per_tick"] / max(addressed[h][f"{d}_bytes_per_tick"], 1e-9), 2)
                      for d in ("sent", "received")}}
              for h in HOSTS}
-    res = {"date": time.strftime("%Y-%m-%d"), "scenario": "gu_hu_normal", "n_sensors": len(WHERE),
-           "placement": {h: [n for n, w in WHERE.items() if w == h] + (["world/0", "target/0", "recorder/0",
-                                                                         "launcher/0"] if h == HUB else [])
-                         for h in HOSTS},
+    res = {"date": time.strftime("%Y-%m-%d"), "scenario": "gu_hu_normal", "n_sensors": len(plan.of_kind("agent")),
+           "placement": {h: [n.name for n in plan.on(h)] for h in HOSTS},
            "ticks_counted": [k0, k1], "rc": info.get("rc"), "wall_s": round(time.monotonic() - t0, 1),
            "links_addressed": pred["addressed"], "links_broadcast": pred["broadcast"],
            "message_bytes": pred["message_bytes"], "hosts": hosts}

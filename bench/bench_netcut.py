@@ -2,9 +2,10 @@
 
     python bench/bench_netcut.py [--trials 20] [--down 3] [--every 5] [--out bench/results/netcut.json]
 
-The multi-host test's set-up (tests/netns.py, tests/test_multihost.py): three "hosts" (namespaces on a
-switch), one Zenoh router each meshed by broker_cfg/mesh/, gu_hu_normal's 10 sensors split a: 0–3 (with the
-world, the target, the recorder and the launcher), b: 4–6, c: 7–9 — here in realtime. Host b's cable is
+The multi-host test's set-up (flocktrack.testbed.netns): three "hosts" (namespaces on a switch), each running
+`flocktrack run gu_hu_normal --placement hosts.toml --host NAME` — its own router of the mesh, launcher and
+recorder shard — with the 10 sensors split a: 0–3 (with the world and the target), b: 4–6, c: 7–9, here in
+realtime. Host b's cable is
 pulled ``--trials`` times, each for ``--down`` s, ``--every`` s after the previous heal. Per trial, from
 host a's liveliness view: ``detect_s`` = cut → the last of b's sensors seen gone; ``recover_s`` = heal → the
 last of them seen back. Targets: detection ≤ 2 s, recovery ≤ 1 s after the heal. Needs root and
@@ -23,12 +24,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "bench"))
 
-import netns  # noqa: E402 - from tests/, after the sys.path lines above
-from bench_recovery import stats  # noqa: E402 - same (median / p95 / max of a distribution with gaps)
-from test_multihost import HOSTS, VICTIMS, mesh_run  # noqa: E402 - same
+from bench_recovery import stats  # noqa: E402 - after the sys.path lines above (median / p95 / max with gaps)
+from flocktrack.testbed import netns  # noqa: E402 - same
+
+HOSTS = ["a", "b", "c"]
+WHERE = {"agent/0-3": "a", "agent/4-6": "b", "agent/7-9": "c", "*": "a"}
+VICTIMS = [4, 5, 6]     # host b's sensors
 
 TARGETS = {"detect_s": 2.0, "recover_s": 1.0}
 
@@ -71,10 +74,11 @@ def main(argv: list[str] | None = None) -> int:
           f"(~{wall:.0f} s)", flush=True)
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="netcut_") as d, netns.Network(len(HOSTS)) as net:
-        info = mesh_run(net, Path(d), [f"run.ticks={ticks}", 'run.mode="realtime"'],
-                        cut={"port": "p1", "at_tick": at_tick, "down_s": a.down, "repeat": a.trials,
-                             "every_s": a.every}, timeout_s=wall + 120)
-        timeline = json.loads((Path(d) / "run" / "timeline.json").read_text())
+        r = netns.placed_run(net, WHERE, "gu_hu_normal", Path(d), "--ticks", str(ticks), "--mode", "realtime",
+                             names=HOSTS, cut={"port": "p1", "at_tick": at_tick, "down_s": a.down, "repeat": a.trials,
+                                               "every_s": a.every}, timeout_s=wall + 120)
+        timeline = json.loads((Path(d) / "timeline.json").read_text())
+        info = {"rc": max((rc if rc is not None else 124) for rc in r["rcs"])}
     rows = trials(timeline)
     res = {"date": time.strftime("%Y-%m-%d"), "trials": rows, "down_s": a.down, "every_s": a.every,
            "rc": info.get("rc"), "wall_s": round(time.monotonic() - t0, 1), "targets": TARGETS,

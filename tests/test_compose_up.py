@@ -1,7 +1,7 @@
 """`docker compose up` for real: the demo in containers, built and run by the tests (docs/deploy.md).
 
 A Docker engine (the running one, else a ``dockerd`` started here with no bridge network:
-tests/docker_engine.py), the base image made without a registry (``flocktrack image``: mmdebstrap |
+flocktrack/testbed/docker.py), the base image made without a registry (``flocktrack image``: mmdebstrap |
 docker import), the project image built once by ``docker compose build`` from a file that
 ``flocktrack compose --network host`` generated, then:
 
@@ -34,7 +34,7 @@ from flocktrack.launch.launcher import free_port
 from flocktrack.record.reader import read_recording
 
 import provision
-from docker_engine import Engine
+from flocktrack.testbed.docker import Engine
 
 pytestmark = pytest.mark.slow
 
@@ -149,14 +149,14 @@ def test_compose_up_lockstep_equals_inproc_and_down_leaves_nothing(engine, built
     assert all(s["network_mode"] == "host" for s in doc["services"].values())
     data = tmp_path / "data"
     with Project(engine, tmp_path) as proj:
-        assert proj.wait("world", 300) == 0, proj.logs("world")[-3000:]
-        assert proj.wait("recorder", 120) == 0, proj.logs("recorder")[-3000:]
+        assert proj.wait("world-0", 300) == 0, proj.logs("world-0")[-3000:]
+        assert proj.wait("recorder-0", 120) == 0, proj.logs("recorder-0")[-3000:]
         for name in services:   # every service started; the run's members exited cleanly
             state = proj.inspect(name)["State"]
             assert not state["StartedAt"].startswith("0001"), name
-            if name.startswith("sensor-") or name == "target":
+            if name.startswith("agent-") or name == "target-0":
                 assert state["Status"] == "exited" and state["ExitCode"] == 0, (name, proj.logs(name)[-3000:])
-        assert proj.inspect("router")["State"]["Running"] and proj.inspect("dashboard")["State"]["Running"]
+        assert proj.inspect("router-0")["State"]["Running"] and proj.inspect("dashboard-0")["State"]["Running"]
 
     summary = json.loads((data / "summary.json").read_text())
     rec = read_recording(data / "recording.mcap")
@@ -182,14 +182,14 @@ def test_compose_up_secure_killed_sensor_is_restarted_and_rejoins(engine, built,
                     "--secure", "--keys", str(keys))
     svcs = doc["services"]
     # each service mounts only its own credentials
-    for name, ident in [("router", "router"), ("world", "world"), ("sensor-2", "agent-2"), ("dashboard", "dashboard")]:
+    for name, ident in [("router-0", "router-0"), ("world-0", "world-0"), ("agent-2", "agent-2"), ("dashboard-0", "dashboard-0")]:
         mounts = [v for v in svcs[name]["volumes"] if "/keys/" in v]
         assert mounts == [f"./compose/keys/{ident}:{compose.KEYS_MOUNT}:ro"], (name, mounts)
     data = tmp_path / "data"
     ep = doc["x-flocktrack"]["endpoint"]
     assert ep.startswith("tls/127.0.0.1:")
     with Project(engine, tmp_path) as proj:
-        for name, ident in [("sensor-1", "agent-1"), ("recorder", "recorder")]:
+        for name, ident in [("agent-1", "agent-1"), ("recorder-0", "recorder-0")]:
             binds = [m["Source"] for m in proj.inspect(name)["Mounts"] if m["Destination"] == compose.KEYS_MOUNT]
             assert binds == [str(tmp_path / "compose" / "keys" / ident)], (name, binds)
         # the run is well under way: ~100 ticks in the recording (it grows ~8 kB a tick; its size is watched,
@@ -197,7 +197,7 @@ def test_compose_up_secure_killed_sensor_is_restarted_and_rejoins(engine, built,
         _wait_size(data / "recording.mcap", 600_000, 240, proj)
         # ... sensor 1's process dies (SIGKILL, as a crash: `docker kill` would be a manual stop, which
         # Docker's restart policy does not undo) ...
-        top = engine.docker("top", proj.container("sensor-1"), "-eo", "pid,args").stdout.splitlines()[1:]
+        top = engine.docker("top", proj.container("agent-1"), "-eo", "pid,args").stdout.splitlines()[1:]
         pids = [int(ln.split()[0]) for ln in top if ln.split(None, 1)[1].startswith("python -m agent sensor")]
         assert len(pids) == 1, top
         os.kill(pids[0], signal.SIGKILL)
@@ -205,11 +205,11 @@ def test_compose_up_secure_killed_sensor_is_restarted_and_rejoins(engine, built,
         probe = subprocess.run([sys.executable, "-m", "flocktrack.launch.health", "--quiet", "--timeout", "3", "--run", "demo",
                                 "--connect", ep, "--member", "world/0"], capture_output=True, text=True, timeout=60)
         assert probe.returncode == 1, probe.stderr
-        assert proj.wait("world", 300) == 0, proj.logs("world")[-3000:]
-        assert proj.wait("recorder", 120) == 0, proj.logs("recorder")[-3000:]
+        assert proj.wait("world-0", 300) == 0, proj.logs("world-0")[-3000:]
+        assert proj.wait("recorder-0", 120) == 0, proj.logs("recorder-0")[-3000:]
         # ... the restart policy restarted its container once, and it rejoined the running flock
-        assert proj.inspect("sensor-1")["RestartCount"] == 1, proj.logs("sensor-1")[-3000:]
-        assert "agent/1: rejoining the flock at tick" in proj.logs("sensor-1")
+        assert proj.inspect("agent-1")["RestartCount"] == 1, proj.logs("agent-1")[-3000:]
+        assert "agent/1: rejoining the flock at tick" in proj.logs("agent-1")
     est = _estimates(data / "recording.mcap", 4)
     longest = {i: max(((b - a, a, b) for a, b in zip(ks, ks[1:])), default=(0, 0, 0)) for i, ks in est.items()}
     # sensor 1 was down (a restart takes seconds) — longer than any gap the others had (a loaded machine

@@ -1,4 +1,4 @@
-"""Several hosts without Docker: network namespaces joined by a switch (tests/netns.py), each host running its
+"""Several hosts without Docker: network namespaces joined by a switch (flocktrack.testbed.netns), each host running its
 share of a placed flock with the user's command — ``flocktrack run SCENARIO --placement hosts.toml --host NAME``
 (one router per host, meshed from the placement; each host's processes on their local router; each host records
 its own nodes' shard) — and ``flocktrack merge`` of the three directories gives the single-host run's numbers.
@@ -9,7 +9,6 @@ the reason otherwise, and failed instead under CI.
 """
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from flocktrack.engine.run import run_inproc_to_dir
 from flocktrack.deploy.mesh import mesh_configs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import netns
+from flocktrack.testbed import netns
 from provision import network_namespaces, require
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,35 +47,15 @@ def net():
 
 
 def flock_run(net, tmp_path: Path, args: list[str], cut: dict | None = None, timeout_s: float = 240) -> Path:
-    """Run gu_hu_normal over the three hosts with the user's commands, one per host; ``cut``: pull a cable
-    (tests/netns.py CutAndWatch, run on host a beside the flock). Returns the merged directory."""
-    placement = net.placement(tmp_path / "hosts.toml", WHERE, list(HOSTS))
-    watch = None
-    if cut is not None:
-        spec = {"run": "mesh", "out": str(tmp_path / "timeline.json"), "timeout_s": timeout_s,
-                "cut": {"switch": net.switch, **cut}}
-        (tmp_path / "watch.json").write_text(json.dumps(spec))
-        watch = subprocess.Popen([*net.wrap(0), sys.executable, str(ROOT / "tests" / "netns.py"), "watch",
-                                  str(tmp_path / "watch.json")], cwd=str(ROOT))
-    procs = net.flock(placement, list(HOSTS), "gu_hu_normal", tmp_path, *args)
-    rcs = []
-    for p in procs:
-        try:
-            rcs.append(p.wait(timeout_s + 120))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            rcs.append(None)
-    if watch is not None:
-        watch.wait(60)
-    outs = {h: (tmp_path / f"{h}.out").read_text()[-2000:] for h in HOSTS}
-    assert rcs == [0, 0, 0], (rcs, outs)
+    """Run gu_hu_normal over the three hosts with the user's commands, one per host, and merge them
+    (:func:`flocktrack.testbed.netns.placed_run`); ``cut``: pull a cable. Returns the merged directory."""
+    r = netns.placed_run(net, WHERE, "gu_hu_normal", tmp_path, *args, names=list(HOSTS), cut=cut, timeout_s=timeout_s)
+    assert r["rcs"] == [0, 0, 0], r
     for h in HOSTS:
         info = json.loads((tmp_path / h / "run.json").read_text())
         assert info["rc"] == 0 and info["recording_complete"] and info["host"] == h, info
-    merged = subprocess.run([sys.executable, "-m", "flocktrack", "merge", *(str(tmp_path / h) for h in HOSTS),
-                             "--out", str(tmp_path / "merged")], capture_output=True, text=True, timeout=300)
-    assert merged.returncode == 0, merged.stderr
-    return tmp_path / "merged"
+    assert r["merge_rc"] == 0, r["merge_err"]
+    return r["merged"]
 
 
 def _estimates(path: Path) -> dict[tuple[int, int], np.ndarray]:

@@ -1,4 +1,4 @@
-"""Hosts without Docker: Linux network namespaces joined by a switch, for the multi-host tests.
+"""Hosts without Docker: Linux network namespaces joined by a switch (needs root and ``ip``).
 
 :class:`Network` makes ``n`` "hosts" (namespaces ``ft<tag>h<i>``, each with ``lo`` and ``eth0`` =
 10.213.0.<i+1>/24) cabled by veth pairs to a bridge that lives in its own namespace ``ft<tag>sw`` — so
@@ -9,7 +9,7 @@ namespaces, and with them every veth and the bridge, are deleted by :meth:`Netwo
 failure and at interpreter exit), after killing what still runs inside them.
 
 Each host runs its share of a placed flock with the user's own command, ``flocktrack run SCENARIO
---placement hosts.toml --host NAME`` (:meth:`Network.flock`). ``python tests/netns.py watch SPEC.json`` is run
+--placement hosts.toml --host NAME`` (:meth:`Network.flock`). ``python -m flocktrack.testbed.netns watch SPEC.json`` is run
 *inside* the first host beside them: it follows the run on that host's router, optionally cuts a host's link at
 a tick and heals it, and writes the timeline of what the first host saw (liveliness of every process, ticks,
 cut/heal instants, switch counters).
@@ -28,7 +28,6 @@ import time
 import uuid
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
 SUBNET = "10.213.0"
 
 
@@ -99,7 +98,7 @@ class Network:
             log = open(out / f"{name}.out", "w")
             procs.append(subprocess.Popen([*self.wrap(i), sys.executable, "-m", "flocktrack", "run", scenario,
                                            "--placement", str(placement), "--host", name, "--out", str(out / name),
-                                           "--quiet", *args], cwd=str(ROOT), stdout=log, stderr=subprocess.STDOUT))
+                                           "--quiet", *args], cwd=str(out), stdout=log, stderr=subprocess.STDOUT))
         return procs
 
     def wrap(self, i: int) -> list[str]:
@@ -153,7 +152,7 @@ def port_counters(switch: str, ports: list[str]) -> dict[str, dict[str, int]]:
 class CutAndWatch:
     """Follows a run from the first host (its router on loopback): liveliness and ticks; at tick ``at_tick``
     takes the switch port ``port`` down, brings it up ``down_s`` later — and, with ``repeat`` > 1, cuts it
-    again ``every_s`` after each heal (bench/bench_netcut.py's trials)."""
+    again ``every_s`` after each heal (the cable-pull benchmark's trials)."""
 
     def __init__(self, spec: dict):
         self.spec = spec
@@ -219,9 +218,46 @@ class CutAndWatch:
             self.bus.close()
 
 
+def placed_run(net: Network, where: dict[str, str], scenario: str, out: Path, *args: str, names: list[str],
+               cut: dict | None = None, sample_at: list[int] | None = None, timeout_s: float = 240,
+               run: str = "mesh") -> dict:
+    """Run ``scenario`` placed on the network's hosts (``names[i]`` = host i; ``where``: node pattern → host) with
+    one ``flocktrack run --placement --host`` per host, then ``flocktrack merge`` of their directories into
+    ``out/merged``. ``cut``: pull a cable (:class:`CutAndWatch`, run on host 0 beside the flock; its timeline in
+    ``out/timeline.json``); ``sample_at``: ticks at which the watcher reads the switch ports' byte counters into
+    that timeline. Returns ``{"rcs", "outputs", "merge_rc", "merged"}``."""
+    placement = net.placement(out / "hosts.toml", where, names, run=run)
+    watch = None
+    if cut is not None or sample_at:
+        spec = {"run": run, "out": str(out / "timeline.json"), "timeout_s": timeout_s}
+        if cut is not None:
+            spec["cut"] = {"switch": net.switch, **cut}
+        if sample_at:
+            spec["sample"] = {"switch": net.switch, "ports": [f"p{i}" for i in range(len(names))], "at_ticks": sample_at}
+        (out / "watch.json").write_text(json.dumps(spec))
+        watch = subprocess.Popen([*net.wrap(0), sys.executable, "-m", "flocktrack.testbed.netns", "watch",
+                                  str(out / "watch.json")], cwd=str(out))
+    procs = net.flock(placement, names, scenario, out, *args)
+    rcs: list[int | None] = []
+    for p in procs:
+        try:
+            rcs.append(p.wait(timeout_s + 120))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            rcs.append(None)
+    if watch is not None:
+        try:
+            watch.wait(60)
+        except subprocess.TimeoutExpired:
+            watch.kill()
+    merged = subprocess.run([sys.executable, "-m", "flocktrack", "merge", *(str(out / h) for h in names),
+                             "--out", str(out / "merged")], capture_output=True, text=True, timeout=600)
+    return {"rcs": rcs, "outputs": {h: (out / f"{h}.out").read_text()[-2000:] for h in names},
+            "merge_rc": merged.returncode, "merge_err": merged.stderr[-2000:], "merged": out / "merged"}
+
+
 def watch(spec_file: str) -> int:
     """Follow the spec's run from this host until its end (or ``timeout_s``); write ``spec["out"]``."""
-    sys.path.insert(0, str(ROOT))
     spec = json.loads(Path(spec_file).read_text())
     hook = CutAndWatch(spec)
     end = time.monotonic() + spec.get("timeout_s", 240)
@@ -240,5 +276,5 @@ def watch(spec_file: str) -> int:
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "watch":
         sys.exit(watch(sys.argv[2]))
-    print("usage: python tests/netns.py watch SPEC.json", file=sys.stderr)
+    print("usage: python -m flocktrack.testbed.netns watch SPEC.json", file=sys.stderr)
     sys.exit(2)
