@@ -212,3 +212,10 @@ def test_in_secure_mode_the_router_denies_a_node_what_it_did_not_declare(tmp_pat
         listener.close()
     finally:
         router.close()
+
+
+def test_the_architecture_page_draws_the_demos_plan_as_it_is():
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    block = text.split("```mermaid\n", 1)[1].split("```", 1)[0]
+    assert block == as_mermaid(build_plan(load_scenario(SCEN / "demo.toml"), dashboard=True)), \
+        "regenerate with `flocktrack plan scenarios/demo.toml --format mermaid`"
