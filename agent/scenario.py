@@ -43,7 +43,7 @@ from .schema import (LIMITS, Matrices, Matrix, Pairs, ScenarioError, Vector, bui
                      check_shape)
 from .seeding import rng_for
 from .suggest import did_you_mean
-from .wire import FAULT_LIMITS, MAX_EVADE_ACCEL
+from .wire import BYZANTINE_MODES, FAULT_DIRECTIONS, FAULT_KINDS, FAULT_LIMITS, MAX_EVADE_ACCEL
 
 if TYPE_CHECKING:
     from .models_uav import CarrilloScenario
@@ -145,26 +145,21 @@ class ControlCfg:
     u_max: float | None = None
 
 
-FAULT_KINDS = ("link_loss", "delay", "duplicate", "reorder", "partition", "crash", "pause", "router_restart",
-               "byzantine", "outliers", "blind", "noise", "evade")
-
-
 @dataclass(frozen=True)
 class FaultEventCfg:
     """One scheduled fault (Jepsen-style nemesis with explicit heal); see topology/faults.py."""
 
-    kind: Literal["link_loss", "delay", "duplicate", "reorder", "partition", "crash", "pause", "router_restart",
-                  "byzantine", "outliers", "blind", "noise", "evade"] = "link_loss"
+    kind: Literal[FAULT_KINDS] = "link_loss"      #: (the one list of fault kinds: agent.wire.FAULT_KINDS)
     start: int = 0
     heal: int | None = None
     targets: str = "all"      #: all | agents:1,2 | links:0-1,2-3 | random:k | most_connected | halves | groups:0,0,1,…
     p: float = 1.0            #: link_loss / duplicate / reorder probability
-    direction: Literal["both", "in", "out"] = "both"
+    direction: Literal[FAULT_DIRECTIONS] = "both"
     delay_ticks: int = 1      #: delay in ticks (lockstep-friendly: a payload held k ticks arrives late)
     jitter_ticks: int = 0     #: + a uniform integer in [−jitter_ticks, jitter_ticks] per payload (≥ 0 overall)
     delay_ms: float = 0.0     #: delay in wall-clock ms instead of ticks (> 0 switches to ms; realtime: what
     jitter_ms: float = 0.0    #:   misses its round's deadline is lost); + uniform ±jitter_ms per payload
-    mode: Literal["nan", "huge", "stale", "bias"] = "bias"
+    mode: Literal[BYZANTINE_MODES] = "bias"
     bias: Vector | None = None
     magnitude: float = 50.0   #: outlier norm; "huge" Byzantine factor is 1e6
     noise_scale: float = 3.0

@@ -225,7 +225,7 @@ def _faults(gui, p: OperatorPanel, ui, control, order: float) -> None:
 def _plan_fault(gui, p: OperatorPanel, ui, control, order: float) -> None:
     """Folded: the "Plan fault" form (control/inject, see :func:`inject_from_form`) and healing one live
     fault by its id (control/heal_fault)."""
-    from agent.scenario import FAULT_KINDS
+    from agent.wire import FAULT_KINDS
 
     with _folder(gui, p, "Plan fault (control/inject)", expand_by_default=False, order=order):
         p.g_inj_kind = gui.add_dropdown("Kind", FAULT_KINDS, initial_value="delay")

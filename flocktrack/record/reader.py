@@ -1,19 +1,20 @@
-"""The one reader of recordings: :func:`read_recording` yields the messages back (recovering what a
-truncated file still holds), :func:`recover` rewrites a cut file whole, :func:`metrics_from_recording`
-recomputes ``summary.json`` from a recording alone."""
+"""Recordings read back: :func:`read_recording` (the one reader, :mod:`agent.recording`: the messages in
+sequence order, recovering what a truncated file still holds), :func:`recover` rewrites a cut file whole,
+:func:`metrics_from_recording` recomputes ``summary.json`` from a recording alone."""
 
 from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
-from agent import wire
+from agent.recording import Recording, read_recording
 
 from .writer import McapRecorder
 
 log = logging.getLogger(__name__)
+
+__all__ = ["Recording", "read_recording", "recover", "metrics_from_recording"]
 
 
 def recover(path: str | Path, out: str | Path | None = None) -> tuple[Path, Recording]:
@@ -31,76 +32,6 @@ def recover(path: str | Path, out: str | Path | None = None) -> tuple[Path, Reco
     finally:
         w.finish()
     return dst, rec
-
-
-@dataclass
-class Recording:
-    metadata: dict[str, str]
-    messages: list[tuple[str, wire.Message, int]]  # (key, message, log_time ns) in sequence order
-    complete: bool
-    rejected: int = 0
-
-
-def read_recording(path: str | Path) -> Recording:
-    """All messages of a recording in sequence order. A truncated file (crash) yields what its
-    complete chunks hold, with ``complete=False``."""
-    from mcap.reader import make_reader
-    from mcap.stream_reader import StreamReader
-    from mcap.records import Channel, Chunk, Message, Metadata
-
-    path = Path(path)
-    meta: dict[str, str] = {}
-    msgs: list[tuple[int, str, wire.Message, int]] = []
-    rejected = 0
-    complete = True
-    try:
-        with open(path, "rb") as f:
-            r = make_reader(f)
-            for m in r.iter_metadata():
-                if m.name == "flocktrack":
-                    meta = dict(m.metadata)
-            for _schema, channel, message in r.iter_messages(log_time_order=False):
-                try:
-                    msgs.append((message.sequence, channel.topic,
-                                 wire.from_json(json.loads(message.data)), message.log_time))
-                except (wire.WireError, ValueError):
-                    rejected += 1
-    except Exception:  # truncated / no summary: stream through what is there
-        complete = False
-        msgs, rejected = [], 0
-        channels: dict[int, str] = {}
-        with open(path, "rb") as f:
-            try:
-                for rec in StreamReader(f, skip_magic=False).records:
-                    if isinstance(rec, Metadata) and rec.name == "flocktrack":
-                        meta = dict(rec.metadata)
-                    elif isinstance(rec, Channel):
-                        channels[rec.id] = rec.topic
-                    elif isinstance(rec, Chunk):
-                        for sub in _chunk_records(rec):
-                            if isinstance(sub, Channel):
-                                channels[sub.id] = sub.topic
-                            elif isinstance(sub, Message):
-                                _append(msgs, channels, sub)
-                    elif isinstance(rec, Message):
-                        _append(msgs, channels, rec)
-            except Exception:
-                pass
-    msgs.sort(key=lambda t: t[0])
-    return Recording(meta, [(k, m, t) for _, k, m, t in msgs], complete, rejected)
-
-
-def _chunk_records(chunk):
-    from mcap.reader import breakup_chunk
-
-    return breakup_chunk(chunk, validate_crc=False)
-
-
-def _append(msgs, channels, rec) -> None:
-    try:
-        msgs.append((rec.sequence, channels[rec.channel_id], wire.from_json(json.loads(rec.data)), rec.log_time))
-    except (KeyError, wire.WireError, ValueError):
-        pass
 
 
 def metrics_from_recording(path: str | Path, out_dir: str | Path | None = None, rec=None) -> dict:
