@@ -6,19 +6,23 @@
                                 [--max-restarts 3] [--mode M] [--set K=V ...] [--check]
 
 writes ``DIR/docker-compose.yml``, ``DIR/Dockerfile`` and the run's inputs ``DIR/compose/scenario.toml``,
-``DIR/compose/design.json`` and ``DIR/compose/meta.json`` (``DIR`` defaults to ``.``). The services are
-the processes ``flocktrack run`` spawns (``launch.Launcher.plan``), one container each, talking through
-one Zenoh router container:
+``DIR/compose/design.json``, ``DIR/compose/meta.json`` and ``DIR/compose/plan.json`` (``DIR`` defaults to
+``.``). The services are the run plan's nodes (:mod:`flocktrack.plan`: the processes ``flocktrack run``
+spawns, without the launcher), one container each, named as the node with a dash, talking through one Zenoh
+router container:
 
-* ``router``      ``python -m flocktrack.launch.router --config …/compose_router.json5`` (the launcher's embedded router)
-* ``recorder``    ``python -m flocktrack.record --out /data/recording.mcap …``    (``recorder/0``)
-* ``dashboard``   ``python -m dashboards --port 8080 --host 0.0.0.0 …``          (``dashboard/0``)
-* ``target``      ``python -m agent target …``                                  (``target/0``)
-* ``sensor-<i>``  ``python -m agent sensor --id i …``                           (``agent/<i>``)
-* ``fusion``      ``python -m agent fusion …`` — scenarios with UAVs only         (``fusion/0``)
-* ``world``       ``python -m topology … --expect recorder/0``                  (``world/0``)
+* ``router-0``    ``python -m flocktrack.launch.router --config …/compose_router.json5`` (the launcher's embedded router)
+* ``recorder-0``  ``python -m flocktrack.record --out /data/recording.mcap …``    (``recorder/0``)
+* ``dashboard-0`` ``python -m dashboards --port 8080 --host 0.0.0.0 …``          (``dashboard/0``)
+* ``agent-<i>``   ``python -m agent sensor --id i …``                           (``agent/<i>``)
+* ``target-0``    ``python -m agent target …``                                  (``target/0``)
+* ``fusion-0``    ``python -m agent fusion …`` — scenarios with UAVs only         (``fusion/0``)
+* ``world-0``     ``python -m topology --expect recorder/0 …``                  (``world/0``)
 
-Every agent connects to ``tcp/router:7447`` and runs under the scenario's run name (keys
+With ``--placement hosts.toml``, one such directory per host (``DIR/<host>/``) with that host's nodes and its
+router of the mesh, every service on the host's network.
+
+Every agent connects to ``tcp/router-0:7447`` and runs under the scenario's run name (keys
 ``ft/<run>/…``). Two network modes:
 
 * ``--network bridge`` (the default, for real deployments): the services share the compose network and
