@@ -53,8 +53,9 @@ sys.path.insert(0, str(ROOT))
 from agent import wire
 from agent.bus import BusStats, deliver
 from dashboards import plots
-from dashboards.live import DashboardUI, LiveDashboard, decoded_key
+from dashboards.live import LiveDashboard, decoded_key
 from dashboards.state import DashboardState, RunInfo, synthetic_tick
+from dashboards.ui import DashboardUI
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -122,7 +123,7 @@ def stats(a) -> dict:
 # ============================================================================ 1. pipeline
 
 def bench_pipeline(n: int, ticks: int, rounds: int, use_browser: bool) -> dict:
-    from flocktrack.launch import free_port
+    from flocktrack.launch.launcher import free_port
 
     info = RunInfo(n=n, link_range=12.0, name=f"bench-{n}", T=0.1)
     ticks_b = [tick_bytes(n, k, rounds, 0.1) for k in range(ticks)]
@@ -154,7 +155,7 @@ def bench_pipeline(n: int, ticks: int, rounds: int, use_browser: bool) -> dict:
             scene_t.append(time.perf_counter() - t0)
             if k % 5 == 4:  # plots every 0.5 s of a 10 Hz stream
                 t0 = time.perf_counter()
-                ui.render_plots(st.series(last=ui.max_plot_points * 4))
+                ui.render_plots(st.series(last=ui.plot_panel.max_points * 4))
                 plot_t.append(time.perf_counter() - t0)
         assert st.finalized_k == ticks - 1 and bs.dropped == {}
         if br:
@@ -183,7 +184,7 @@ def publisher(run: str, port: int, n: int, hz: float, seconds: float, rounds: in
     """(child process) the router (as in a real run it lives in the launcher, not in the dashboard) and
     the synthetic flock published at ``hz`` ticks per second once the dashboard's token is up."""
     from agent.bus import ZenohBus
-    from flocktrack.launch import open_router
+    from flocktrack.launch.launcher import open_router
 
     router = open_router(port)
     bus = ZenohBus(run, connect=f"tcp/127.0.0.1:{port}")
@@ -219,7 +220,7 @@ def publisher(run: str, port: int, n: int, hz: float, seconds: float, rounds: in
 
 def bench_paced(n: int, hz: float, seconds: float, rounds: int, use_browser: bool) -> dict:
     from agent.bus import ZenohBus
-    from flocktrack.launch import free_port
+    from flocktrack.launch.launcher import free_port
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -259,7 +260,7 @@ def bench_paced(n: int, hz: float, seconds: float, rounds: int, use_browser: boo
                 lag = published["k"] - st.finalized_k
                 lags.append(lag)
                 samples.append({"t": round(now - w0, 2), "published": published["k"], "scored": st.finalized_k,
-                                "shown_in_scene": ui._last_scene_k, "lag_ticks": lag})
+                                "shown_in_scene": ui.last_scene_k, "lag_ticks": lag})
         wall = time.monotonic() - w0
         cpu = time.process_time() - cpu0
         pub.wait(30)
@@ -294,8 +295,7 @@ VIEWER_CASES = (("no tab", 0, False), ("1 reading tab", 1, False), ("5 reading t
 def tabs_process(port: int, n: int, send: bool) -> int:
     """(child process, nice 19) ``n`` tabs on the dashboard at ``port`` until it closes; with ``send`` each
     sends 10 valid and 10 invalid updates a second."""
-    sys.path.insert(0, str(ROOT / "tests"))
-    from dashboard_clients import Tab
+    from dashboards.probe import Tab
 
     os.nice(19)
     end = time.monotonic() + 120
@@ -345,7 +345,7 @@ def bench_viewers(ticks: int, out_root: Path, repeats: int = 3) -> list[dict]:
 def _viewer_run(name: str, n: int, send: bool, ticks: int, out: Path) -> dict:
     from machine_gaps import GapMonitor
 
-    from flocktrack.launch import free_port
+    from flocktrack.launch.launcher import free_port
 
     port = free_port()
     with GapMonitor() as gaps:
@@ -360,9 +360,9 @@ def _viewer_run(name: str, n: int, send: bool, ticks: int, out: Path) -> dict:
             connected = tabs.stdout.readline().strip() == "CONNECTED"
             tabs.wait(30)
     info = json.loads((out / "run.json").read_text())
-    dash = json.loads((out / "stats" / "dashboard_0.json").read_text()).get("role", {})
+    dash = json.loads((out / "stats" / "dashboard-0.json").read_text()).get("role", {})
     guard = dash.get("guard", {})
-    missed_ticks = sorted({int(k) for f in (out / "logs").glob("agent_*.log")
+    missed_ticks = sorted({int(k) for f in (out / "logs").glob("agent-*.log")
                            for k in re.findall(r"deadline on \((\d+), \d+\)", f.read_text(errors="replace"))})
     g = gaps.result() or {}
     return {"case": name, "tabs": n, "sending": send, "exit_code": rc, "tabs_connected": connected,
@@ -375,9 +375,9 @@ def _viewer_run(name: str, n: int, send: bool, ticks: int, out: Path) -> dict:
             "dashboard_cpu_share": (dash["cpu_s"] / dash["wall_s"]) if dash.get("wall_s") else None,
             "tabs_seen": guard.get("tabs_seen"), "updates_refused": guard.get("total_invalid_updates", 0),
             "throttled": guard.get("total_throttled", 0), "closed_for_rate": guard.get("closed_for_rate", 0),
-            "dashboard_log_bytes": (out / "logs" / "dashboard.log").stat().st_size,
+            "dashboard_log_bytes": (out / "logs" / "dashboard-0.log").stat().st_size,
             # a dashboard that exited on its own: what it said last (the run's directory is temporary)
-            "dashboard_log_tail": _tail(out / "logs" / "dashboard.log", 40)
+            "dashboard_log_tail": _tail(out / "logs" / "dashboard-0.log", 40)
             if any(info.get("exits", {}).get("dashboard/0") or []) else None}
 
 

@@ -331,7 +331,7 @@ def drawable(data, series) -> tuple[np.ndarray, ...]:
     return (np.r_[x[0] - dx, x], *(np.r_[a, y] for a, y in zip(anchor, ys)))
 
 
-def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = None,
+def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = None, *,
                  max_node_series: int = 10, has_lower: bool | None = None,
                  has_fusion: bool | None = None) -> list[PanelSpec]:
     """The live plot panels. Per-node errors are drawn one line per node up to ``max_node_series``
@@ -430,7 +430,7 @@ def save_static_png(path, series: dict[str, np.ndarray], snap: Snapshot | None, 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = uplot_panels(series, n, selected, max_node_series)
+    panels = uplot_panels(series, n, selected, max_node_series=max_node_series)
     fig = plt.figure(figsize=(15, 8.5), dpi=110)
     gs = fig.add_gridspec(3, 3, width_ratios=[1.25, 1, 1])
     ax0 = fig.add_subplot(gs[:, 0])

@@ -34,7 +34,7 @@ Per finalized tick the series hold
 * the message rate and the dropped messages per second (bus drops + missing sensor estimates/states)
   over the last ``rate_window_s`` seconds.
 
-These are the same definitions as ``flocktrack/metrics.py`` (a test checks they agree on a recording),
+These are the same definitions as ``flocktrack/record/metrics.py`` (a test checks they agree on a recording),
 computed here without importing it (floors: ``dashboards`` imports only ``agent``).
 """
 

@@ -122,7 +122,7 @@ def build_tab(ui, client) -> TabPanel:
 
     for name in ("ellipse", "nsig"):
         w[name].on_update(safe(redraw, name))
-    _add_overlays(client.scene, panel, ui.marker_size)
+    _add_overlays(client.scene, panel, ui.scene.marker_size)
     return panel
 
 
@@ -171,8 +171,8 @@ def render_tab(panel: TabPanel, snap, ui) -> None:
     else:
         show(o["ellipse"], False)
     if sel.pos is not None:
-        set_segments(o["ring"], plots.circle_segments(sel.pos[None], 1.1 * ui.marker_size, 24))
-        o["label"].position = tuple(sel.pos + np.array([0.0, 0.0, 1.5 * ui.marker_size]))
+        set_segments(o["ring"], plots.circle_segments(sel.pos[None], 1.1 * ui.scene.marker_size, 24))
+        o["label"].position = tuple(sel.pos + np.array([0.0, 0.0, 1.5 * ui.scene.marker_size]))
         o["label"].text = f"sensor {panel.selected}"
         show(o["label"], True)
     else:

@@ -458,7 +458,7 @@ def test_camera_reports_tell_the_users_moves_from_ours():
     poses the tab reports. Its own commands come back late and in pieces — a position alone (the look-at
     kept), a look-at alone, an older look-at with a newer position — so a report is ours when its position
     and its look-at are each one we sent; a user's orbit, pan or zoom moves at least one of them elsewhere."""
-    from dashboards.live import ClientView
+    from dashboards.camera import ClientView
 
     v = ClientView()
     v.remember(0, (0.0, -30.0, 40.0), (0.0, 0.0, 0.0))                  # the page's initial camera
@@ -541,9 +541,9 @@ def test_live_loop_counts_decodes_and_publishes_controls():
 
 
 def test_viser_ui_renders_and_buttons_queue_controls():
-    from flocktrack.launch import free_port
+    from flocktrack.launch.launcher import free_port
 
-    from dashboards.live import DashboardUI
+    from dashboards.ui import DashboardUI
     from dashboards.operator import inject_from_form
 
     n = 12
@@ -555,10 +555,10 @@ def test_viser_ui_renders_and_buttons_queue_controls():
     try:
         op = ui.add_operator_panel(ui.server.gui, None)   # (a browser tab's own GUI in a real page)
         sa = ui.render_scene(st.snapshot(), st.series(last=200)["err"])
-        assert sa is not None and ui.h_sensors.visible and ui.h_links.visible
+        assert sa is not None and ui.scene.h_sensors.visible and ui.scene.h_links.visible
         assert ui.render_scene(st.snapshot()) is None  # same tick, nothing to redraw
         ui.render_plots(st.series())
-        assert set(ui.h_plots) == {"errors", "tmsee", "disagreement", "lambda2", "rates"}
+        assert set(ui.plot_panel.handles) == {"errors", "tmsee", "disagreement", "lambda2", "rates"}
         ui.render_status(st.summary())
         ui.select(4)           # (not a tab's choice: the shared highlight moves, no operator's fields —
         assert ui.selected == 4 and op.g_kill_id.value == 0   # see tests/test_dashboard_auth.py)

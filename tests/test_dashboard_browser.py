@@ -214,9 +214,9 @@ def session(tmp_path_factory):
     _require_browser()
     from agent.scenario import parse_scenario
     from agent.scenario import scenario_data
-    from flocktrack.launch import free_port
-    from flocktrack.record import read_recording
-    from flocktrack.run import run_zenoh_to_dir
+    from flocktrack.launch.launcher import free_port
+    from flocktrack.record.reader import read_recording
+    from flocktrack.engine.run import run_zenoh_to_dir
 
     out_dir = tmp_path_factory.mktemp("live")
     shots = tmp_path_factory.mktemp("shots")
@@ -237,7 +237,7 @@ def session(tmp_path_factory):
     th.join(timeout=60)
     print("browser timeline (s, step, tick shown, run's tick):", results.get("timeline"))
     if "error" in results:   # what the dashboard said too: its log is in a temporary directory
-        log = out_dir / "logs" / "dashboard.log"
+        log = out_dir / "logs" / "dashboard-0.log"
         tail = "\n".join(log.read_text(errors="replace").splitlines()[-60:]) if log.is_file() else "(no log)"
         pytest.fail(f"{results['error']}\ntimeline: {results.get('timeline')}\ndashboard log (last lines):\n{tail}")
     assert not th.is_alive(), "the browser session did not finish during the run"
@@ -333,7 +333,7 @@ def test_replay_page_time_slider(session, tmp_path):
     import subprocess
     import sys
 
-    from flocktrack.launch import free_port
+    from flocktrack.launch.launcher import free_port
     from playwright.sync_api import sync_playwright
 
     port = free_port()
@@ -417,11 +417,12 @@ class LiveDashboardOn:
         self.run, self.scenario, self.log, self.env, self.record = run, scenario, log, env, record
 
     def __enter__(self):
+        import json
         import subprocess
         import sys
 
         from agent.bus import ZenohBus
-        from flocktrack.launch import free_port, open_router
+        from flocktrack.launch.launcher import free_port, open_router
 
         zport, self.port = free_port(), free_port()
         self.router = open_router(zport)
@@ -430,9 +431,14 @@ class LiveDashboardOn:
                                       f"tcp/127.0.0.1:{zport}", "--port", str(self.port), "--scenario",
                                       str(self.scenario)], cwd=str(ROOT), stdout=self._out, stderr=subprocess.STDOUT,
                                      env=dict(os.environ, **(self.env or {})))
-        self.recorder = None if self.record is None else subprocess.Popen(
-            [sys.executable, "-m", "flocktrack.record", "--run", self.run, "--connect", f"tcp/127.0.0.1:{zport}",
-             "--out", str(self.record)], cwd=str(ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.recorder = None
+        if self.record is not None:   # it subscribes to what the scenario's plan gives it (its --meta)
+            meta = self.record.with_name("meta.json")
+            meta.write_text(json.dumps({"scenario": Path(self.scenario).read_text()}))
+            self.recorder = subprocess.Popen(
+                [sys.executable, "-m", "flocktrack.record", "--run", self.run, "--connect", f"tcp/127.0.0.1:{zport}",
+                 "--out", str(self.record), "--meta", str(meta)], cwd=str(ROOT), stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL)
         self.bus = ZenohBus(self.run, connect=f"tcp/127.0.0.1:{zport}")
         members: set[str] = set()
         self.bus.watch_members(lambda name, alive: members.add(name) if alive else members.discard(name))
@@ -707,7 +713,7 @@ def test_readmes_main_job_as_a_user_runs_it_on_a_loaded_machine(tmp_path):
 
     from playwright.sync_api import sync_playwright
 
-    from flocktrack.launch import free_port
+    from flocktrack.launch.launcher import free_port
 
     port, out, ticks = free_port(), tmp_path / "demo", 250
     # the machine starved in bursts, as a user's laptop is (a build, a browser tab): busy 1 s, idle 1 s on one
@@ -767,7 +773,7 @@ def test_only_the_operator_link_shows_and_works_the_controls(tmp_path):
 
     from playwright.sync_api import sync_playwright
 
-    from flocktrack.record import read_recording
+    from flocktrack.record.reader import read_recording
 
     token, recording, stats = "s3cret-operator-token", tmp_path / "recording.mcap", tmp_path / "stats"
     env = {TOKEN_ENV: token, "FLOCKTRACK_STATS_DIR": str(stats)}
@@ -806,5 +812,5 @@ def test_only_the_operator_link_shows_and_works_the_controls(tmp_path):
     assert [(key, args) for key, args, _ in controls] == [("control/kill", {"agent": 0})], controls
     assert controls[0][2] >= t_click
     # the dashboard's stats file (written as it stops): the wrong token was refused and counted
-    role = json.loads((stats / "dashboard_0.json").read_text())["role"]
+    role = json.loads((stats / "dashboard-0.json").read_text())["role"]
     assert role["wrong_tokens"] == 1 and role["operator_tabs"] >= 1 and "refused_controls" not in role, role

@@ -23,7 +23,7 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from dashboard_clients import Tab, operator_ui, wait
+from dashboards.probe import Tab, operator_ui, wait
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the most the dashboard may log about the hostile tabs of one test (its own lines included)
@@ -217,8 +217,8 @@ def _run(tmp: Path, driver=None):
     """The demo in lockstep (seed fixed by the scenario), one process per sensor over Zenoh; with
     ``driver`` the dashboard too, and ``driver(launcher)`` started in its own thread on the first poll."""
     from agent.scenario import parse_scenario, scenario_data
-    from flocktrack.launch import free_port
-    from flocktrack.run import run_zenoh_to_dir
+    from flocktrack.launch.launcher import free_port
+    from flocktrack.engine.run import run_zenoh_to_dir
 
     data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [],
                          **{"run.ticks": RUN_TICKS, "run.mode": "lockstep"})
@@ -239,7 +239,7 @@ def _run(tmp: Path, driver=None):
 
 
 def _estimates(out: Path) -> list:
-    from flocktrack.record import read_recording
+    from flocktrack.record.reader import read_recording
 
     return sorted((m.k, key, tuple(map(float, m.x))) for key, m, _ in read_recording(out / "recording.mcap").messages
                   if key.endswith("/estimate") and key.startswith("agent/"))
@@ -327,8 +327,8 @@ def test_hostile_viewers_of_a_real_run_leave_its_estimates_and_its_operator_alon
         raise steer.error
     assert [v for v in steer.acks if v in ("pause", "step", "resume")] == ["pause", "step", "resume"]
     assert _estimates(out) == quiet_run                     # the viewers changed nothing of the run
-    log = (out / "logs" / "dashboard.log").read_text()
+    log = (out / "logs" / "dashboard-0.log").read_text()
     assert "Traceback" not in log and len(log) < LOG_LIMIT, (len(log), log[-3000:])
-    role = json.loads((out / "stats" / "dashboard_0.json").read_text())["role"]
+    role = json.loads((out / "stats" / "dashboard-0.json").read_text())["role"]
     assert role["operator_tabs"] >= 1 and role["wrong_tokens"] >= 1 and "refused_controls" not in role
     assert role["guard"]["total_invalid_updates"] > 0, role["guard"]

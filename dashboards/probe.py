@@ -1,12 +1,21 @@
-"""Hand-written browser tabs for the dashboard's tests: websocket clients that speak the page's own protocol
-(msgpack over Viser's websocket, the page's subprotocol), read what the server sends them (the widget ids
-among it) and send what a page — or someone pretending to be one — would."""
+"""Headless viewers for load-testing a dashboard: websocket clients that speak the page's own protocol
+(msgpack over Viser's websocket, with the page's subprotocol), read every frame the server sends (and the
+widget ids among it) and send what a page — or someone pretending to be one — would. No browser: a
+:class:`Tab` costs the machine a thread, not a renderer, so tens of them stand for the viewers of a run.
+
+``python -m dashboards.probe URL --tabs N --seconds S`` opens ``N`` tabs on the page at ``URL`` (its
+address, or an operator link) for ``S`` seconds and prints the frames and bytes each received, as JSON.
+"""
 
 from __future__ import annotations
 
+import argparse
+import json
+import sys
 import threading
 import time
 from contextlib import contextmanager
+from urllib.parse import parse_qs, urlsplit
 
 import msgspec
 
@@ -22,16 +31,19 @@ def _decode_frame(data: bytes) -> list[dict]:
 
 
 class Tab:
-    """A tab on the dashboard at ``port`` whose websocket path is ``path`` ("/" a viewer's,
-    "/operator/<token>" an operator's). ``read``: a thread reads every frame (``frames``, ``nbytes``) and
-    keeps the ids of the widgets they create (``uuids``) — what a page learns of the GUI."""
+    """A tab on the dashboard at ``host:port`` whose websocket path is ``path`` ("/" a viewer's,
+    "/operator/<token>" an operator's); ``ssl``: a context for a secure run's page (wss). ``read``: a thread
+    reads every frame (``frames``, ``nbytes``) and keeps the ids of the widgets they create (``uuids``) —
+    what a page learns of the GUI. ``camera``: report a camera at once (Viser serves a tab from then on)."""
 
-    def __init__(self, port: int, path: str = "/", *, read: bool = True, camera: bool = True):
+    def __init__(self, port: int, path: str = "/", *, host: str = "127.0.0.1", ssl=None, read: bool = True,
+                 camera: bool = True):
         import viser
         from websockets.sync.client import connect
 
-        self.ws = connect(f"ws://127.0.0.1:{port}{path}", subprotocols=[f"viser-v{viser.__version__}"],
-                          max_size=None, open_timeout=30)
+        scheme = "ws" if ssl is None else "wss"
+        self.ws = connect(f"{scheme}://{host}:{port}{path}", subprotocols=[f"viser-v{viser.__version__}"],
+                          max_size=None, open_timeout=30, ssl=ssl)
         self.uuids: list[str] = []
         self.widgets: dict[str, dict] = {}     #: uuid → the message that created it (type, props)
         self.visible: dict[str, bool] = {}     #: uuid → whether the widget shows, as the server last said
@@ -97,6 +109,11 @@ class Tab:
     def press(self, uuid: str, value=True) -> bool:
         return press(self.ws, uuid, value)
 
+    def report(self) -> dict:
+        """What this tab received so far."""
+        return {"frames": self.frames, "bytes": self.nbytes, "widgets": len(self.uuids),
+                "closed_by_server": self.closed.is_set()}
+
     def close(self) -> None:
         self.ws.close()
 
@@ -119,11 +136,12 @@ def press(ws, uuid: str, value=True) -> bool:
 
 
 def connect(port: int, path: str):
-    """A bare websocket tab (no reader), its camera reported."""
+    """A bare websocket tab on 127.0.0.1 (no reader), its camera reported."""
     return Tab(port, path, read=False).ws
 
 
 def wait(cond, timeout_s: float = 20.0) -> bool:
+    """Poll ``cond()`` until it holds or ``timeout_s`` passed; its last value."""
     end = time.monotonic() + timeout_s
     while not cond() and time.monotonic() < end:
         time.sleep(0.05)
@@ -131,16 +149,17 @@ def wait(cond, timeout_s: float = 20.0) -> bool:
 
 
 @contextmanager
-def operator_ui(n: int, **kwargs):
-    """A live DashboardUI with operator token "the-token", the controls it sends, and a list of websockets
-    (or :class:`Tab`) that are closed (and the UI stopped) on the way out."""
-    from dashboards.live import DashboardUI
-    from dashboards.state import RunInfo
-    from flocktrack.launch import free_port
+def operator_ui(n: int, *, token: str = "the-token", **kwargs):
+    """A live :class:`~dashboards.ui.DashboardUI` of an ``n``-sensor run in this process, on a free port of
+    127.0.0.1, whose operator token is ``token`` (``kwargs``: the UI's other options). Yields the UI, the
+    controls it sent (``(verb, args)``, as the live loop would have published them) and a list for the
+    websockets (or :class:`Tab`) to close on the way out, where the UI is stopped."""
+    from .state import RunInfo
+    from .ui import DashboardUI
 
     sent: list = []
-    ui = DashboardUI(RunInfo(n=n, link_range=12.0, name="auth"), port=free_port(), live=True,
-                     send_control=lambda v, a: sent.append((v, a)), operator_token="the-token", **kwargs)
+    ui = DashboardUI(RunInfo(n=n, link_range=12.0, name="probe"), port=0, live=True,
+                     send_control=lambda v, a: sent.append((v, a)), operator_token=token, **kwargs)
     socks: list = []
     try:
         yield ui, sent, socks
@@ -148,3 +167,51 @@ def operator_ui(n: int, **kwargs):
         for ws in socks:
             ws.close()
         ui.stop()
+
+
+def websocket_address(url: str) -> tuple[str, int, str, bool]:
+    """(host, port, path, secure) of the websocket the page at ``url`` opens: its ``?websocket=`` parameter
+    (an operator link, dashboards/operator.py), else the page's own address."""
+    u = urlsplit(url)
+    ws = parse_qs(u.query).get("websocket")
+    if ws:
+        u = urlsplit(ws[0])
+    secure = u.scheme in ("https", "wss")
+    return u.hostname or "127.0.0.1", u.port or (443 if secure else 80), u.path or "/", secure
+
+
+def main(argv: list[str] | None = None) -> int:
+    from websockets.exceptions import WebSocketException
+
+    ap = argparse.ArgumentParser(prog="python -m dashboards.probe", description=__doc__.split("\n")[0])
+    ap.add_argument("url", help="the page's address (http://HOST:PORT/) or an operator link")
+    ap.add_argument("--tabs", type=int, default=1, help="headless tabs to open (default 1)")
+    ap.add_argument("--seconds", type=float, default=10.0, help="how long they stay (default 10)")
+    ap.add_argument("--cafile", help="an https page: the CA its certificate is checked against (a secure run's)")
+    args = ap.parse_args(argv)
+    host, port, path, secure = websocket_address(args.url)
+    ctx = None
+    if secure:
+        import ssl
+
+        ctx = ssl.create_default_context(cafile=args.cafile)
+    tabs: list[Tab] = []
+    try:
+        for _ in range(max(0, args.tabs)):
+            tabs.append(Tab(port, path, host=host, ssl=ctx))
+        end = time.monotonic() + args.seconds
+        while time.monotonic() < end and not all(t.closed.is_set() for t in tabs):
+            time.sleep(0.1)
+        reports = [t.report() for t in tabs]
+    except (OSError, WebSocketException) as e:
+        print(f"error: {args.url}: {e}", file=sys.stderr)
+        return 1
+    finally:
+        for t in tabs:
+            t.close()
+    print(json.dumps({"url": args.url, "seconds": args.seconds, "tabs": reports}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

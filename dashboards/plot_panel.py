@@ -1,0 +1,64 @@
+"""The error traces and the other live series, as uPlot panels in a panel of their own docked left.
+
+Each panel's data and lines come from :func:`dashboards.plots.uplot_panels`; a redraw sends each panel's
+new data, and a panel whose set of lines changed is built anew.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import plots
+from .state import RunInfo
+
+
+class PlotPanel:
+    """The "Plots" panel on ``server``'s GUI, for a run of ``info``; at most ``max_points`` rows of each
+    series go to the browser (:func:`dashboards.plots.decimate`)."""
+
+    #: the panels top to bottom
+    ORDER = {k: 100 + i for i, k in enumerate(["errors", "tmsee", "disagreement", "lambda2", "rates"])}
+
+    def __init__(self, server, info: RunInfo, *, max_points: int = 1500):
+        self.server, self.info, self.max_points = server, info, max_points
+        self.has_fusion = False           # once a fusion line is drawn it stays (the panel keeps its lines)
+        self.handles: dict = {}           #: panel key → its uPlot handle
+        self.last_k: int | None = None    #: the last tick drawn (None: redraw at the next call)
+        gui = server.gui
+        panel = gui.add_panel()
+        self.tab = panel.add_tab("Plots")
+        panel.dock_left()
+        panel.set_width(460)
+        with self.tab:
+            gui.add_markdown("live series (uPlot; drag to zoom, double-click to reset)", order=1)
+
+    def render(self, series: dict[str, np.ndarray], selected: int | None, force: bool = False) -> bool:
+        """Redraw from ``series`` (the error panel's highlighted line: sensor ``selected``) if its last tick
+        is new, or with ``force``; False when there was nothing to draw."""
+        if not len(series["k"]):
+            return False
+        last_k = int(series["k"][-1])
+        if last_k == self.last_k and not force:
+            return False
+        self.last_k = last_k
+        ser = plots.decimate(series, self.max_points)
+        fe = series.get("fusion_err")
+        self.has_fusion = self.has_fusion or bool(fe is not None and np.isfinite(fe).any())
+        specs = plots.uplot_panels(ser, self.info.n, selected, has_lower=self.info.tmsee_lower is not None,
+                                   has_fusion=self.has_fusion)
+        with self.server.atomic():
+            for spec in specs:
+                h = self.handles.get(spec.key)
+                if h is None or len(h.series) != len(spec.series):
+                    if h is not None:
+                        h.remove()
+                    self.handles[spec.key] = self._add(spec)
+                else:
+                    h.data = tuple(np.asarray(a, float) for a in spec.data)
+        return True
+
+    def _add(self, spec: plots.PanelSpec):
+        with self.tab:
+            return self.server.gui.add_uplot(data=tuple(np.asarray(a, float) for a in spec.data), series=spec.series,
+                                             title=spec.title, scales=spec.scales, axes=spec.axes, aspect=2.5,
+                                             order=self.ORDER[spec.key])
