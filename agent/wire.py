@@ -688,9 +688,6 @@ _KEY_TYPES = {
 }
 
 
-#: what observers (recorder, dashboard) subscribe to: every key but the addressed copies of the
-#: exchange payloads (each payload is seen once, on ``agent/<i>/xchg``)
-OBSERVED = ("world/**", "target/**", "launcher/**", "control/**", "fusion/**", "agent/*/*")
 
 
 def xchg_key(src: int, dst: int) -> str:

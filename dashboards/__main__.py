@@ -40,6 +40,7 @@ def parser() -> argparse.ArgumentParser:
                     help="live: the port users open, for the logged operator link (a container's published "
                          "host port; default: --port)")
     ap.add_argument("--config", default=None, help="Zenoh json5 config for this process")
+    ap.add_argument("--plan", help="live: the run plan (plan.json): what to subscribe to (the dashboard node's reads)")
     ap.add_argument("--exit-on-end", action="store_true", help="live: exit one second after world/end")
     ap.add_argument("--operator-token-file", help="live: file holding the run's operator token (default: "
                                                   "$FLOCKTRACK_DASHBOARD_TOKEN, else a new token, its link logged)")
@@ -115,7 +116,14 @@ def main(argv: list[str] | None = None) -> int:
 
     observer_priority()          # the flock first (a live dashboard is an observer of the run)
     info = RunInfo.from_files(args.scenario, args.design)
+    from .live import EVERYTHING, plan_reads
+
+    try:
+        reads = plan_reads(args.plan) if args.plan else EVERYTHING
+    except (OSError, ValueError) as exc:
+        ap.error(f"--plan: {exc}")
     return run_live(args.run, args.connect, args.port, info, host=args.host, config_file=args.config,
+                    subscriptions=reads,
                     exit_on_end=args.exit_on_end, stop_event=stop, operator_token=operator_token(args),
                     tls=(args.tls_cert, args.tls_key) if args.tls_cert else None,
                     limits=Limits(max_tabs=max(1, args.max_tabs)))

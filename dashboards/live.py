@@ -18,6 +18,7 @@ with a time slider over its ticks (play / pause / playback speed).
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -36,10 +37,20 @@ from .ui import DashboardUI
 
 log = logging.getLogger(__name__)
 
-#: Everything but the addressed copies of the exchange payloads (agent.wire.OBSERVED). The model relies on
-#: the publication order to score a tick in time; the bus's callbacks keep it across subscriptions
-#: (agent.bus.ZenohBus._in_order).
-SUBSCRIPTIONS = wire.OBSERVED
+#: What the dashboard subscribes to without a run plan: everything, the addressed copies of the exchange
+#: payloads dropped on arrival. With one (``--plan``), its node's reads: every node's writes but the addressed
+#: copies. The model relies on the publication order to score a tick in time; the bus's callbacks keep it
+#: across subscriptions (agent.bus.ZenohBus._in_order).
+EVERYTHING = ("**",)
+
+
+def plan_reads(plan_file: str | Path, name: str = "dashboard/0") -> tuple[str, ...]:
+    """The reads of node ``name`` in a run plan's JSON (``plan.json``, ``flocktrack plan --format json``)."""
+    doc = json.loads(Path(plan_file).read_text())
+    for node in doc.get("nodes", []):
+        if node.get("name") == name:
+            return tuple(node.get("reads", ()))
+    raise ValueError(f"{plan_file}: the plan has no node {name!r}")
 
 
 def decoded_key(topic: str) -> bool:
@@ -76,8 +87,10 @@ class LiveDashboard:
     """Bus → state → UI, on one thread. :meth:`step` does one poll / publish / redraw round."""
 
     def __init__(self, state: DashboardState, ui: DashboardUI | None, bus, *, scene_period: float = 0.1,
-                 plot_period: float = 0.5, max_messages: int = 4000, clock=time.monotonic):
+                 plot_period: float = 0.5, max_messages: int = 4000, clock=time.monotonic,
+                 subscriptions: tuple[str, ...] = EVERYTHING):
         self.state, self.ui, self.bus = state, ui, bus
+        self.subscriptions = subscriptions
         self.scene_period, self.plot_period = scene_period, plot_period
         self.max_messages = max_messages
         self.clock = clock
@@ -98,13 +111,15 @@ class LiveDashboard:
         def on_raw(key: str, data: bytes) -> None:
             w = wanted.get(key)
             if w is None:
+                if wire.addressed(key):   # (only with a catch-all subscription: a payload's addressed copy)
+                    return
                 w = wanted[key] = decoded_key(key)
             if w:
                 deliver(stats, handlers, key, data)
             else:
                 st.count(clock())
 
-        for pattern in SUBSCRIPTIONS:
+        for pattern in self.subscriptions:
             self.bus.subscribe_raw(pattern, on_raw)
 
     def send_control(self, verb: str, args: dict) -> None:
@@ -150,7 +165,8 @@ class LiveDashboard:
 def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "127.0.0.1",
              config_file: str | None = None, exit_on_end: bool = False, stop_event: threading.Event | None = None,
              token: str = "dashboard/0", operator_token: str | None = None,
-             tls: tuple[str, str] | None = None, limits: Limits | None = None) -> int:
+             tls: tuple[str, str] | None = None, limits: Limits | None = None,
+             subscriptions: tuple[str, ...] = EVERYTHING) -> int:
     """``token``: this process's liveliness token; ``operator_token``: the run's operator token (None: a
     read-only page for everyone, see dashboards/operator.py); ``limits``: what a tab may send
     (dashboards/guard.py)."""
@@ -164,7 +180,7 @@ def run_live(run: str, connect: str, port: int, info: RunInfo, *, host: str = "1
     quick_gil_handoff()
     bus = ZenohBus(run, connect=connect, config_file=config_file)
     state = DashboardState(info)
-    loop = LiveDashboard(state, None, bus)
+    loop = LiveDashboard(state, None, bus, subscriptions=subscriptions)
     ui = DashboardUI(info, port=port, host=host, live=True, send_control=loop.send_control,
                      operator_token=operator_token, tls=tls, limits=limits)
     cpu0, wall0 = time.process_time(), time.monotonic()

@@ -70,6 +70,18 @@ def test_the_recorder_reads_what_the_nodes_write_each_key_once():
     assert "agent/*/state" in rec.reads and not any("/to/" in r for r in rec.reads)   # one subscription per family
 
 
+@pytest.mark.parametrize("scenario", ["demo.toml", "carrillo_uav.toml"])
+def test_observers_see_every_published_key_once_and_no_addressed_copy(scenario):
+    plan = build_plan(load_scenario(SCEN / scenario), dashboard=True)
+    published = {w.replace("*", "7").replace("{i}", "3") for n in plan.nodes for w in n.writes if "**" not in w}
+    published |= {"control/pause", "control/kill"}
+    for observer in ("recorder/0", "dashboard/0"):
+        reads = plan.node(observer).reads
+        for key in published:
+            hits = sum(key_matches(p, key) for p in reads)
+            assert hits == (0 if "/to/" in key else 1), (observer, key, hits)
+
+
 def test_mermaid_draws_who_feeds_whom():
     text = as_mermaid(build_plan(load_scenario(SCEN / "demo.toml"), dashboard=True))
     assert text.startswith("flowchart LR")

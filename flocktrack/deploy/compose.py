@@ -349,6 +349,8 @@ def node_service(d: Deployment, node, router: str, after: dict[str, str], summar
         host = "0.0.0.0" if (opts.dashboard_public or not d.host_net) else "127.0.0.1"
         public = [] if port == opts.dashboard_port else ["--public-port", str(opts.dashboard_port)]
         cmd[3:3] = ["--port", str(port), "--host", host, *public]
+        cmd += ["--plan", _conf("plan")]
+        configs.append("plan")
         # (the page of a secure run is HTTPS with a certificate of the run's CA: its token check suffices)
         health_extra = [] if opts.secure else ["--http", f"http://localhost:{port}/"]
         if not d.host_net:   # its buttons kill processes and partition the flock: on the host's loopback only

@@ -94,7 +94,7 @@ class Commands:
                 argv += [f"--{what}", str(files[what])]
         if node.kind == "recorder":
             argv += ["--out", str(self.opts.run_dir / "recording.mcap"), "--name", node.name]
-        if node.kind == "recorder" and ins.plan is not None:
+        if node.kind in ("recorder", "dashboard") and ins.plan is not None:
             argv += ["--plan", str(ins.plan)]
         if node.kind == "world":
             argv += ["--startup-timeout", str(self.opts.startup_timeout_s + 30)]
