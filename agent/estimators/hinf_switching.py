@@ -23,7 +23,7 @@ graph, and handed to each sensor as its gain ``K``):
 Run-time: :class:`HinfSwitchingEstimator`, one node of (3) behind the :class:`Estimator` interface.
 
 Findings about the paper that matter to a user (measured on its Section 4 example, R = 1,
-Q = 0.01 I, γ = 0.1, K = [0.9376, 0.5884]ᵀ; see tests/test_hinf_switching.py):
+Q = 0.01 I, γ = 0.1, K = [0.9376, 0.5884]ᵀ; see tests/unit/test_hinf_switching.py):
 
 1. **Typo in Theorem 3.3.** The condition printed as ``I − γP⁻¹ > 0`` must be ``I − γP > 0``
    (⟺ P⁻¹ − γI > 0 ⟺ M = (P⁻¹ − γI)⁻¹ > 0): the proof uses

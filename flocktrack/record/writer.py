@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 
 CHUNK_BYTES = 64 * 1024
 #: a chunk open longer than this is closed and written out: a crash (kill -9 of the recorder or of its
-#: launcher) loses at most the last FLUSH_S of messages (tests/test_recording_crash.py)
+#: launcher) loses at most the last FLUSH_S of messages (tests/runtime/test_recording_crash.py)
 FLUSH_S = 0.5
 
 

@@ -1,0 +1,56 @@
+"""The declared wait budgets of the node loop (agent/runner.py ``WaitBudget``, agent/__main__.py
+``role_budget``): lockstep waits only catch dead processes; in realtime a sensor's exchange rounds share the
+period as a slot schedule anchored at the tick's start and bounded by a window from the tick's arrival, round 0
+with a head start, the target's wait for the estimates ends before the world's clock closes the tick, and the
+warm-up tick 0 waits long."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from agent.__main__ import TAIL_MAX_S, role_budget
+from agent.runner import WaitBudget
+from agent.scenario import parse_scenario, scenario_data
+
+SCEN = Path(__file__).resolve().parents[2] / "scenarios"
+
+
+def _demo(**over):
+    return parse_scenario(scenario_data(str(SCEN / "demo.toml"), [], **over), "demo.toml")
+
+
+def test_a_scheduled_round_inherits_the_time_an_earlier_round_left_unused():
+    b = WaitBudget(0.01, schedule=True, head=1)
+    # round 0 due two slots after the tick began, whenever the wait itself began
+    assert b.due((5, 0), began=100.0, step_began=100.0) == pytest.approx(100.02)
+    # round 0 closed fast (at +1 ms): round 1 is still due at +30 ms, not 10 ms after it began
+    assert b.due((5, 1), began=100.001, step_began=100.0) == pytest.approx(100.03)
+    # a per-wait budget (lockstep) counts from each wait's own start
+    assert WaitBudget(5.0).due((5, 1), began=100.001, step_began=100.0) == pytest.approx(105.001)
+    # the window: a step learned of at 99.95 (its tick came) but begun at 100.0 ends its waits by 99.95 + 0.08
+    w = WaitBudget(0.01, schedule=True, head=1, window_s=0.08)
+    assert w.due((5, 0), 100.0, 100.0, anchor=99.95) == pytest.approx(100.02)     # round 0 fits in the window
+    assert w.due((5, 2), 100.03, 100.0, anchor=99.95) == pytest.approx(100.03)    # round 2 is cut to it
+    assert w.due((5, 2), 100.03, 100.0) == pytest.approx(100.04)                  # no anchor: no window
+    # every wait of tick 0 gets the warm-up budget, scheduled or not
+    assert WaitBudget(0.01, schedule=True, head=1, warmup_s=0.5).due((0, 2), 7.0, 1.0) == pytest.approx(7.5)
+
+
+def test_realtime_budgets_fit_the_sensors_rounds_and_the_targets_wait_into_one_period():
+    for speed in (1.0, 0.4):          # the demo at 25 Hz, and at 10 Hz (bench/bench_capacity.py)
+        sc = _demo(**{"run.speed": speed})
+        period, R = sc.run.T / sc.run.speed, sc.estimator.rounds
+        s, t = role_budget(sc, "realtime", "sensor"), role_budget(sc, "realtime", "target")
+        last_round, target = s.due((3, R - 1), 0.0, 0.0), t.due((3, 0), 0.0, 0.0)
+        tail = period - last_round
+        assert tail == pytest.approx(min(2 * period / (R + 3), TAIL_MAX_S))
+        assert s.due((3, 0), 0.0, 0.0) == pytest.approx(2 * (period - tail) / (R + 1))   # round 0: two slots
+        assert last_round < target < period                # the estimates in, then the target moves
+        assert period - target == pytest.approx(tail / 2)  # and its state has half the tail to reach the world
+        assert s.due((0, 0), 0.0, 0.0) == t.due((0, 0), 0.0, 0.0) == pytest.approx(2 * period)
+        # a sensor that began the tick 0.3 periods after it came: its last round ends where the target stops waiting
+        assert s.due((3, R - 1), 0.3 * period, 0.3 * period, anchor=0.0) == pytest.approx(target)
+    lock = role_budget(sc, "lockstep", "sensor")
+    assert not lock.schedule and lock.slot_s == sc.run.deadline_s and lock.warmup_s is None
