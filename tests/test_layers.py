@@ -180,3 +180,25 @@ def test_tests_are_grouped_by_layer():
     assert top <= {"test_layers.py", "test_lint.py", "test_readme.py"}, top
     for layer in ("unit", "runtime", "deploy", "browser"):
         assert list((ROOT / "tests" / layer).glob("test_*.py")), layer
+
+
+#: the runtime and its plumbing: thin signatures (the numerical core keeps the papers' matrix arguments)
+PLUMBING = ["flocktrack", "dashboards", "topology", "agent/roles", "agent/runner.py", "agent/bus.py",
+            "agent/link_emulation.py"]
+
+
+def test_the_runtime_takes_at_most_five_positional_parameters_and_no_class_is_over_400_lines():
+    bad = []
+    for place in PLUMBING:
+        root = ROOT / place
+        for p in ([root] if root.is_file() else sorted(root.rglob("*.py"))):
+            for node in ast.walk(ast.parse(p.read_text(), str(p))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    pos = [a.arg for a in node.args.posonlyargs + node.args.args if a.arg not in ("self", "cls")]
+                    if len(pos) > 5:
+                        bad.append(f"{p.relative_to(ROOT)}:{node.lineno} {node.name}() takes {len(pos)} positional "
+                                   f"parameters (keyword-only for the rest, or one options object)")
+                elif isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > 400:
+                    bad.append(f"{p.relative_to(ROOT)}:{node.lineno} class {node.name} is "
+                               f"{node.end_lineno - node.lineno + 1} lines")
+    assert not bad, "\n".join(bad)

@@ -584,7 +584,7 @@ def _toposort(svcs: dict) -> list[str]:
 def test_compose_services_run_as_processes(tmp_path, scenario_file):
     """Generate a compose file (Chen's switching scenario; the UAV scenario with its fusion service; lockstep, 40 ticks), then start every
     service's command as a local process in dependency order — honouring `service_healthy` with the
-    service's own health check — with only what Docker would provide rewritten: `router` → 127.0.0.1,
+    service's own health check — with only what Docker would provide rewritten: `router-0` → 127.0.0.1,
     the config mounts and the volume → files under tmp_path. The run completes, every member's health
     check passes while it runs, and the recording scores exactly like the in-process engine."""
     from flocktrack.cli import main as cli_main
@@ -600,7 +600,7 @@ def test_compose_services_run_as_processes(tmp_path, scenario_file):
     data.mkdir()
     for name, conf in doc["configs"].items():   # what Docker mounts: the file, relative to the compose file
         (etc / compose.CONFIG_FILES[name]).write_bytes((tmp_path / conf["file"]).read_bytes())
-    subs = {"tcp/router:7447": f"tcp/127.0.0.1:{port}", "localhost:7447": f"127.0.0.1:{port}",
+    subs = {"tcp/router-0:7447": f"tcp/127.0.0.1:{port}", "localhost:7447": f"127.0.0.1:{port}",
             "localhost:8080": f"localhost:{dash}", "/etc/flocktrack/": f"{etc}/", "/data/": f"{data}/",
             "/app/": f"{ROOT}/", "exec python ": f"exec {sys.executable} "}
     env = dict(os.environ, PYTHONUNBUFFERED="1", RUST_LOG="error")
@@ -612,9 +612,9 @@ def test_compose_services_run_as_processes(tmp_path, scenario_file):
 
     def argv_of(name: str, cmd: list[str]) -> list[str]:
         cmd = local(name, cmd)
-        if name == "router":   # the container listens on tcp/0.0.0.0:7447; here a free loopback port
+        if name == "router-0":   # the container listens on tcp/0.0.0.0:7447; here a free loopback port
             cmd += ["--listen", f"tcp/127.0.0.1:{port}"]
-        if name == "dashboard":
+        if name == "dashboard-0":
             cmd[cmd.index("--port") + 1] = str(dash)
         return cmd
 
@@ -637,23 +637,23 @@ def test_compose_services_run_as_processes(tmp_path, scenario_file):
     procs: dict[str, subprocess.Popen] = {}
     logs: dict[str, Path] = {}
     order = _toposort(doc["services"])
-    assert order[0] == "router" and order[-1] == "world"
+    assert order[0] == "router-0" and order[-1] == "world-0"
     try:
         for name in order:
             svc = doc["services"][name]
             for dep, cond in svc.get("depends_on", {}).items():
                 if cond["condition"] == "service_healthy":
                     wait_healthy([dep])
-            if name == "world":   # probe every member once before the run starts (it is over in seconds)
-                wait_healthy([n for n in order if n not in ("router", "world")])
+            if name == "world-0":   # probe every member once before the run starts (it is over in seconds)
+                wait_healthy([n for n in order if n not in ("router-0", "world-0")])
             logs[name] = tmp_path / f"{name}.log"
             procs[name] = subprocess.Popen(argv_of(name, svc["command"]), cwd=str(ROOT), env=env,
                                            stdout=open(logs[name], "wb"), stderr=subprocess.STDOUT)
-        assert procs["world"].wait(300) == 0, logs["world"].read_text()
-        for svc in [n for n in order if n.startswith("sensor-")] + ["target", "recorder"] + (
-                ["fusion"] if "fusion" in procs else []):
+        assert procs["world-0"].wait(300) == 0, logs["world-0"].read_text()
+        for svc in [n for n in order if n.startswith("agent-")] + ["target-0", "recorder-0"] + (
+                ["fusion-0"] if "fusion-0" in procs else []):
             assert procs[svc].wait(60) == 0, f"{svc}: {logs[svc].read_text()}"
-        assert procs["dashboard"].poll() is None and procs["router"].poll() is None   # they stay up
+        assert procs["dashboard-0"].poll() is None and procs["router-0"].poll() is None   # they stay up
     finally:
         for name in reversed(order):
             if name in procs and procs[name].poll() is None:
@@ -663,7 +663,7 @@ def test_compose_services_run_as_processes(tmp_path, scenario_file):
                 procs[name].wait(20)
             except subprocess.TimeoutExpired:
                 procs[name].kill()
-    assert procs["router"].returncode == 0 and procs["dashboard"].returncode == 0
+    assert procs["router-0"].returncode == 0 and procs["dashboard-0"].returncode == 0
 
     live = metrics_from_recording(data / "recording.mcap", tmp_path / "scored")
     assert cli_main(["run", str(scen), "--transport", "inproc", "--mode", "lockstep", "--ticks", "40",

@@ -124,13 +124,13 @@ def test_compose_outside_a_checkout_writes_a_release_deployment(installed):
     assert r.returncode == 0, r.stdout + r.stderr
     doc = yaml.safe_load((work / "c" / "docker-compose.yml").read_text())
     validate(doc)
-    assert len([s for s in doc["services"] if s.startswith("sensor-")]) == 12
+    assert len([s for s in doc["services"] if s.startswith("agent-")]) == 12
     assert all(s["build"]["context"] == "." for s in doc["services"].values())
     dockerfile = (work / "c" / "Dockerfile").read_text()
     version = ft(installed, "--version").stdout.split()[1]
     assert f'flocktrack[fusion]=={version}' in dockerfile and "COPY agent" not in dockerfile
     assert (work / "c" / "wheels" / "README").is_file()   # the Dockerfile's COPY has its directory
-    assert doc["services"]["router"]["command"][-1] == "compose_router.json5"
+    assert doc["services"]["router-0"]["command"][-1] == "compose_router.json5"
 
 
 def test_design_of_a_bundled_scenario(installed):

@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from agent.scenario import parse_scenario, scenario_data
 from flocktrack.engine.run import run_inproc_to_dir
 from flocktrack.launch.launcher import free_port
@@ -81,3 +83,27 @@ def test_a_bad_placement_or_host_is_one_line(tmp_path):
     p = _run("a", tmp_path / "bad.toml", tmp_path)
     out = p.communicate(timeout=120)[0]
     assert p.returncode == 2 and "[place.'agent/5-12'] names agent/10–12" in out and "Traceback" not in out
+
+
+@pytest.mark.slow
+def test_two_hosts_on_loopback_in_realtime_track_together(tmp_path):
+    """Realtime: the run starts when both hosts' members are live, and the merged recording has every tick of
+    the world and the estimates of both hosts' sensors."""
+    from flocktrack.record.reader import read_recording
+
+    placement = _placement(tmp_path / "hosts.toml")
+    procs = {h: subprocess.Popen([sys.executable, "-m", "flocktrack", "run", "gu_hu_normal", "--placement",
+                                  str(placement), "--host", h, "--out", str(tmp_path / h), "--mode", "realtime",
+                                  "--ticks", "60", "--quiet"], cwd=tmp_path, stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT, text=True) for h in ("b", "a")}
+    outs = {h: p.communicate(timeout=300)[0] for h, p in procs.items()}
+    assert all(p.returncode == 0 for p in procs.values()), outs
+    merged = subprocess.run([sys.executable, "-m", "flocktrack", "merge", str(tmp_path / "a"), str(tmp_path / "b"),
+                             "--out", str(tmp_path / "m")], capture_output=True, text=True, timeout=300)
+    assert merged.returncode == 0, merged.stderr
+    rec = read_recording(tmp_path / "m" / "recording.mcap")
+    ticks = sorted(m.k for k, m, _ in rec.messages if k == "world/tick")
+    assert rec.complete and ticks == list(range(60))
+    est = {(m.src, m.k) for k, m, _ in rec.messages if k.startswith("agent/") and k.endswith("/estimate")}
+    for i in range(10):   # every sensor of both hosts estimated (almost) every tick
+        assert sum((i, k) in est for k in range(60)) >= 50, i
