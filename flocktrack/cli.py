@@ -121,7 +121,7 @@ def cmd_run(args) -> int:
         print(f"error: cannot write the results to {out}: {exc.strerror or exc}; give --out a directory you "
               f"can write", file=sys.stderr)
         return 2
-    from flocktrack.engine.run import run_inproc_to_dir, run_zenoh_to_dir
+    from flocktrack.engine.run import run_inproc_to_dir
 
     def report(summary: dict, info: dict) -> None:
         if info.get("rc") not in (0, None):
@@ -167,17 +167,29 @@ def cmd_run(args) -> int:
         build_plan(sc, placement=placement, dashboard=args.dashboard)   # a placement that does not fit fails here
     if args.dashboard:
         print(f"dashboard: http{'s' if args.secure else ''}://localhost:{args.dashboard_port}", file=sys.stderr)
-    summary, info = run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
-                                     placement=placement, host=args.host, startup_timeout_s=args.startup_timeout,
-                                     max_restarts=args.max_restarts, quiet=args.quiet, verbose=args.verbose,
-                                     dashboard_port=args.dashboard_port if args.dashboard else None,
-                                     keep_dashboard=args.dashboard and not args.no_linger,
-                                     secure_dir=(args.keys or str(out / "keys")) if args.secure else None,
-                                     on_results=report, dashboard_token=args.dashboard_token)
+    from flocktrack.deploy.keys import KeySetError
+
+    try:
+        summary, info = _run_zenoh(args, sc, data, out, placement=placement, report=report)
+    except KeySetError as exc:
+        print(f"error: --keys: {exc}", file=sys.stderr)
+        return 2
     if info.get("rc") not in (0, None):
         print(f"error: run ended with code {info['rc']}; see {out}/logs/", file=sys.stderr)
         return 1
     return 0
+
+
+def _run_zenoh(args, sc, data, out: Path, *, placement, report):
+    from flocktrack.engine.run import run_zenoh_to_dir
+
+    return run_zenoh_to_dir(sc, data, out, port=args.port, restart=args.restart,
+                            placement=placement, host=args.host, startup_timeout_s=args.startup_timeout,
+                            max_restarts=args.max_restarts, quiet=args.quiet, verbose=args.verbose,
+                            dashboard_port=args.dashboard_port if args.dashboard else None,
+                            keep_dashboard=args.dashboard and not args.no_linger,
+                            secure_dir=(args.keys or str(out / "keys")) if args.secure else None,
+                            on_results=report, dashboard_token=args.dashboard_token)
 
 
 #: what a run may write to its directory, in the order the README's table gives them

@@ -367,11 +367,15 @@ def make_keys(out: str | Path, plan, endpoint: str = "tls/localhost:7447", hosts
     return KeySet(out, plan.run, idents, endpoint, list(hosts), routers)
 
 
+class KeySetError(ValueError):
+    """A key set that does not fit the run; the message says how to make one that does."""
+
+
 def load_keys(path: str | Path) -> KeySet:
     path = Path(path)
     m = json.loads((path / "keys.json").read_text())
     if "identities" not in m or "n_sensors" in m:
-        raise ValueError(f"{path}: a key set of an older flocktrack (identities named otherwise); make a new one with "
+        raise KeySetError(f"{path}: a key set of an older flocktrack (identities named otherwise); make a new one with "
                          f"`flocktrack keys SCENARIO --out DIR`")
     return KeySet(path, m["run"], list(m["identities"]), m["endpoint"], m.get("hosts", []), m["routers"])
 
@@ -423,7 +427,7 @@ def prepare_keys(path: str | Path, plan) -> KeySet:
         ks = load_keys(path)
         missing = ks.covers(plan)
         if missing:
-            raise ValueError(f"{path} has no credentials for {', '.join(missing[:5])}"
+            raise KeySetError(f"{path} has no credentials for {', '.join(missing[:5])}"
                              f"{' …' if len(missing) > 5 else ''} of this run: make a new set with "
                              f"`flocktrack keys SCENARIO --out DIR`")
         return ks
