@@ -17,6 +17,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 
+def slug(name: str) -> str:
+    """A node's name where a slash is not allowed — a file, a compose service, a certificate's common name:
+    ``agent/3`` → ``agent-3``."""
+    return name.replace("/", "-")
+
+
 def _fill(keys: tuple[str, ...], i: int) -> tuple[str, ...]:
     return tuple(k.replace("{i}", str(int(i))) for k in keys)
 

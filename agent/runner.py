@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from .ports import slug
 from .roles.common import Role
 
 log = logging.getLogger(__name__)
@@ -235,14 +236,10 @@ def write_stats(name: str, bus, role: Role | None = None) -> None:
     counters = getattr(role, "counters", None) or getattr(role, "stats", None)
     if counters:
         out["role"] = dict(counters)
-    p = Path(d) / (_file_stem(name) + ".json")
+    p = Path(d) / (slug(name) + ".json")
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(out, indent=1, sort_keys=True))
 
-
-def _file_stem(name: str) -> str:
-    """'agent/3' → 'agent-3': a node's name as a file name (stats, profiles), as the run plan writes it."""
-    return name.replace("/", "-")
 
 
 def profiled(name: str, fn):
@@ -261,4 +258,4 @@ def profiled(name: str, fn):
         return prof.runcall(fn)
     finally:
         Path(d).mkdir(parents=True, exist_ok=True)
-        prof.dump_stats(str(Path(d) / (_file_stem(name) + ".prof")))
+        prof.dump_stats(str(Path(d) / (slug(name) + ".prof")))

@@ -149,7 +149,7 @@ def cmd_run(args) -> int:
             return 2
     placement = None
     if args.placement or args.host:
-        from flocktrack.plan import build_plan, load_placement
+        from flocktrack.plan import load_placement
 
         if not (args.placement and args.host):
             print("error: --placement HOSTS.toml and --host NAME go together (which host of the placement this is)",
@@ -164,7 +164,6 @@ def cmd_run(args) -> int:
             print(f"error: --host {args.host}: not a host of {args.placement} (its hosts: "
                   f"{', '.join(placement.host_names())})", file=sys.stderr)
             return 2
-        build_plan(sc, placement=placement, dashboard=args.dashboard)   # a placement that does not fit fails here
     if args.dashboard:
         print(f"dashboard: http{'s' if args.secure else ''}://localhost:{args.dashboard_port}", file=sys.stderr)
     from flocktrack.deploy.keys import KeySetError

@@ -285,12 +285,11 @@ def compose_model(sc, opts: ComposeOptions, mode: str, scenario_label: str, *, p
     flock = [n for n in nodes if n.kind != "router"]
     for n in flock:
         after = {router.slug: "service_healthy"}
-        if n.kind in ("agent", "target", "world") or n.kind not in ("recorder", "dashboard"):
-            if recorder:
-                after[recorder] = "service_started"
+        if recorder and n.kind not in ("recorder", "dashboard"):   # the recorder first: it sees every message
+            after[recorder] = "service_started"
         if n.kind == "world":
             after.update({m.slug: "service_started" for m in flock if m.kind not in ("world", "recorder", "dashboard")})
-        services[n.slug] = node_service(d, n, router.slug, after, summary=not plan.multi_host)
+        services[n.slug] = node_service(d, n, after, summary=not plan.multi_host)
     doc = {
         "x-flocktrack": {"run": d.run, "scenario": scenario_label, "sensors": sc.sensors.n, "mode": mode,
                          **({"host": host} if plan.multi_host else {}),
@@ -326,7 +325,7 @@ def router_service(d: Deployment, node, plan) -> dict:
 _INPUT_ARGS = {"scenario": SCENARIO_ARGS, "design": DESIGN_ARGS, "meta": ("--meta", _conf("meta"))}
 
 
-def node_service(d: Deployment, node, router: str, after: dict[str, str], summary: bool = True) -> dict:
+def node_service(d: Deployment, node, after: dict[str, str], *, summary: bool = True) -> dict:
     """The service of one node of the plan: ``python -m MODULE ARGS`` with the run's inputs from
     ``/etc/flocktrack/``, its restart policy, its member health check and its start order."""
     opts = d.opts

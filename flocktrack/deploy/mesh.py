@@ -37,8 +37,10 @@ def mesh_router_id(name: str, addr: str) -> str:
 
 
 def mesh_router_config(peers: list[str], port: int = MESH_PORT, base: str | Path = MESH_ROUTER,
-                       zid: str | None = None, other_zids: list[str] = ()) -> dict:
-    """The router config of one host: listen on every interface, dial ``peers`` (addresses or names).
+                       zid: str | None = None, other_zids: list[str] = (), *, listen: str = "0.0.0.0",
+                       peer_endpoints: list[str] | None = None) -> dict:
+    """The router config of one host: listen on ``listen`` (every interface), dial ``peers`` (addresses or
+    names, on ``port``) — or ``peer_endpoints`` as they are (hosts on ports of their own).
 
     With ``zid`` and the ``other_zids`` of the other hosts' routers: what this router forwards *to them*
     is sent with congestion control DROP, whatever its publisher asked. flocktrack publishes with BLOCK
@@ -49,8 +51,9 @@ def mesh_router_config(peers: list[str], port: int = MESH_PORT, base: str | Path
     (``transport.link.tx.queue.congestion_control.drop.wait_before_drop``) — a payload that a dead link
     would have lost anyway — and the lease expires on time."""
     conf = load_json5(base)
-    conf["listen"]["endpoints"] = [f"tcp/0.0.0.0:{port}"]
-    conf["connect"]["endpoints"] = [f"tcp/{p}:{port}" for p in peers]
+    conf["listen"]["endpoints"] = [f"tcp/{listen}:{port}"]
+    conf["connect"]["endpoints"] = list(peer_endpoints) if peer_endpoints is not None else [f"tcp/{p}:{port}"
+                                                                                             for p in peers]
     if zid is not None:
         conf["id"] = zid
     if other_zids:
@@ -109,10 +112,8 @@ def host_router_config(plan, host: str) -> dict:
     i = next(j for j, h in enumerate(hosts) if h.name == host)
     zids = [mesh_router_id(h.name, h.address) for h in hosts]
     me = hosts[i]
-    conf = mesh_router_config([], me.port, MESH_ROUTER, zids[i], zids[:i] + zids[i + 1:])
-    conf["listen"]["endpoints"] = [f"tcp/{me.listen or '0.0.0.0'}:{me.port}"]
-    conf["connect"]["endpoints"] = [h.endpoint for h in hosts[:i]]
-    return conf
+    return mesh_router_config([], me.port, MESH_ROUTER, zids[i], zids[:i] + zids[i + 1:], listen=me.listen or "0.0.0.0",
+                              peer_endpoints=[h.endpoint for h in hosts[:i]])
 
 
 def host_router_configs(plan, out: str | Path) -> dict[str, Path]:

@@ -128,10 +128,10 @@ def run_zenoh_to_dir(sc: Scenario, data: dict, out: Path, *, port: int | None = 
     from flocktrack.plan import RestartPolicy as Policy
     from flocktrack.plan import build_plan
 
-    scen_file, design_file, dsg, meta_file = write_inputs(sc, data, out)
     run = None if placement is not None else f"{sc.run.name}-{uuid.uuid4().hex[:8]}"
     plan = build_plan(sc, run=run, placement=placement, dashboard=dashboard_port is not None,
-                      sensor_restart=Policy(restart, max_restarts))
+                      sensor_restart=Policy(restart, max_restarts))   # (a placement that does not fit fails here)
+    scen_file, design_file, dsg, meta_file = write_inputs(sc, data, out)
     keys = None
     if secure_dir is not None:
         from flocktrack.deploy.keys import prepare_keys

@@ -31,7 +31,7 @@ import threading
 import time
 from pathlib import Path
 
-from agent.ports import Ports
+from agent.ports import Ports, slug
 from flocktrack.launch.commands import Child, Commands, LaunchOptions
 from flocktrack.launch.forkserver import ForkedProcess, die_with_parent, forkable, start_server
 from flocktrack.plan.model import RunPlan
@@ -77,10 +77,6 @@ def _wait_stopped(pid: int, timeout_s: float) -> bool:
 
 
 STARTUP_REPORT_S = 5.0    #: how often a run that has not begun says what it waits for
-
-
-def _slug(name: str) -> str:
-    return name.replace("/", "-")
 
 
 _ALARMS = ("WARNING", "ERROR", "CRITICAL", "error:", "Traceback")
@@ -202,7 +198,7 @@ class Launcher:
         from agent.bus import ZenohBus
 
         self.ctl_bus = ZenohBus(self.run, connect=self.endpoint,
-                                config_file=str(self.keys.client(_slug(self.name))) if self.keys is not None else None)
+                                config_file=str(self.keys.client(slug(self.name))) if self.keys is not None else None)
         self.ctl_bus.restrict_writes(PORTS.writes)
         self.ctl_bus.subscribe("control/kill", self._on_control)
         self.ctl_bus.subscribe("control/restart", self._on_control)

@@ -8,6 +8,8 @@ restart policy, and where it goes.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from agent.ports import Ports
 from agent.scenario import Scenario
 
@@ -69,26 +71,23 @@ def build_plan(sc: Scenario, *, run: str | None = None, placement: Placement | N
     host without), and each host's router, launcher (``supervisor``: not in a compose deployment) and
     recorder (``record``). The recorder of a host subscribes to what that host's nodes write; the world's
     start waits for every launcher, recorder and extra role (``--expect``)."""
+    from agent.assemble import extra_processes
+
     hosts = placement.hosts if placement is not None else (LOCAL,)
     flock = flock_nodes(sc, dashboard=dashboard, sensor_restart=sensor_restart)
     where = placement.assign([n.name for n in flock]) if placement is not None else {}
-    placed = [_on(n, where.get(n.name, hosts[0].name)) for n in flock]
+    placed = [replace(n, host=where.get(n.name, hosts[0].name)) for n in flock]
     single = placement is None
     for h in hosts:
-        placed += [_on(n, h.name) for n in host_nodes(h.name, single, record=record, supervisor=supervisor)]
+        placed += [replace(n, host=h.name) for n in host_nodes(h.name, single, record=record, supervisor=supervisor)]
     placed = _ordered(_with_observers(placed, multi=not single))
-    expects = [n.name for n in placed if n.member and n.kind in ("launcher", "recorder", *_extras(sc))]
-    placed = [_replace(n, args=n.args + tuple(a for e in expects for a in ("--expect", e))) if n.kind == "world" else n
+    expects = [n.name for n in placed if n.member and n.kind in ("launcher", "recorder", *extra_processes(sc))]
+    placed = [replace(n, args=n.args + tuple(a for e in expects for a in ("--expect", e))) if n.kind == "world" else n
               for n in placed]
     name = run or (placement.run if placement is not None and placement.run else sc.run.name)
     return RunPlan(name, sc.source, sc.run.mode, tuple(placed), tuple(hosts),
                    placement.source if placement is not None else None)
 
-
-def _extras(sc: Scenario) -> tuple[str, ...]:
-    from agent.assemble import extra_processes
-
-    return extra_processes(sc)
 
 
 def _with_observers(nodes: list[Node], multi: bool) -> list[Node]:
@@ -106,7 +105,7 @@ def _with_observers(nodes: list[Node], multi: bool) -> list[Node]:
                 # the control plane: the dashboard's and `flocktrack fault`'s, on the world's timeline
                 reads[CONTROL] = None
             reads[END] = None   # every recorder shard stops at the end (the merge keeps one copy)
-            n = _replace(n, reads=tuple(compact(list(reads), nodes)))
+            n = replace(n, reads=tuple(compact(list(reads), nodes)))
         out.append(n)
     return out
 
@@ -145,12 +144,3 @@ def _ordered(nodes: list[Node]) -> list[Node]:
         return kind, int(n.id) if n.id.isdigit() else 0, n.name
     return sorted(nodes, key=key)
 
-
-def _on(n: Node, host: str) -> Node:
-    return _replace(n, host=host)
-
-
-def _replace(n: Node, **kw) -> Node:
-    from dataclasses import replace
-
-    return replace(n, **kw)

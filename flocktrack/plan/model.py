@@ -17,6 +17,8 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 
+from agent.ports import slug
+
 
 @dataclass(frozen=True)
 class RestartPolicy:
@@ -72,7 +74,7 @@ class Node:
 
     @property
     def slug(self) -> str:
-        return self.name.replace("/", "-")
+        return slug(self.name)
 
 
 @dataclass(frozen=True)

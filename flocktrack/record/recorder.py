@@ -23,6 +23,8 @@ import time
 from pathlib import Path
 
 
+from agent.ports import slug
+
 from .reader import metrics_from_recording
 from .writer import McapRecorder
 
@@ -155,7 +157,7 @@ def _write_stats(rec: McapRecorder, failed: list[str], name: str) -> None:
     import os
 
     if os.environ.get("FLOCKTRACK_STATS_DIR"):
-        p = Path(os.environ["FLOCKTRACK_STATS_DIR"]) / f"{name.replace('/', '-')}.json"
+        p = Path(os.environ["FLOCKTRACK_STATS_DIR"]) / f"{slug(name)}.json"
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(json.dumps({"recorded_by_key": dict(sorted(rec.counts.items())), "dropped": dict(rec.dropped),
                                  "write_failed": failed[0] if failed else None}, indent=1))
