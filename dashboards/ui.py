@@ -54,7 +54,10 @@ class DashboardUI:
         (dashboards/guard.py)."""
         import viser
 
+        from . import frames
         from .operator import Operators
+
+        frames.install()   # one encoding per broadcast frame, not one per tab (dashboards/frames.py)
 
         self.info, self.live, self.replay = info, live, replay
         self.operators = Operators(operator_token if live else None)
@@ -306,7 +309,9 @@ class DashboardUI:
     def stats(self) -> dict:
         """The tabs' counters for the stats file: operators / viewers / wrong tokens / refused controls and
         the guard's (dashboards/guard.py), totals and per tab."""
-        return {**self.operators.counters, "guard": self.guard.stats()}
+        from . import frames
+
+        return {**self.operators.counters, "guard": self.guard.stats(), "frames": frames.stats()}
 
     def stop(self) -> None:
         self.guard.uninstall()
