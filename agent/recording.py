@@ -45,7 +45,9 @@ def read_recording(path: str | Path, decode: Callable[[str], bool] | None = None
             for m in reader.iter_metadata():
                 if m.name == "flocktrack":
                     meta = dict(m.metadata)
-            for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            for schema, channel, message in reader.iter_messages(log_time_order=False):
+                if not _ours(schema.name if schema is not None else ""):
+                    continue
                 keep = decode is None or decode(channel.topic)
                 rows.append((message.sequence, channel.topic, message.data if keep else None, message.log_time))
     except Exception:  # truncated / no summary: stream through what is there
@@ -65,6 +67,12 @@ def read_recording(path: str | Path, decode: Callable[[str], bool] | None = None
     return Recording(meta, out, complete, rejected)
 
 
+def _ours(schema_name: str) -> bool:
+    """A channel of :mod:`agent.wire` messages (``flocktrack.Tick`` …): the recording's other channels (the
+    ``foxglove.*`` views drawn from them) are derived and skipped by this reader."""
+    return schema_name.startswith("flocktrack.")
+
+
 def recording_metadata(path: str | Path) -> dict[str, str]:
     """The recording's flocktrack metadata (scenario TOML, design JSON) without reading its messages."""
     from mcap.reader import make_reader
@@ -81,16 +89,20 @@ def recording_metadata(path: str | Path) -> dict[str, str]:
 
 def _stream(path: Path, decode: Callable[[str], bool] | None):
     """The records a truncated file still holds, chunk by chunk, to its torn end."""
-    from mcap.records import Channel, Chunk, Message, Metadata
+    from mcap.records import Channel, Chunk, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader, breakup_chunk
 
+    schemas: dict[int, str] = {}
     channels: dict[int, str] = {}
     rows: list[tuple[int, str, bytes | None, int]] = []
     meta: dict[str, str] = {}
 
     def take(rec) -> None:
-        if isinstance(rec, Channel):
-            channels[rec.id] = rec.topic
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec.name
+        elif isinstance(rec, Channel):
+            if _ours(schemas.get(rec.schema_id, "")):
+                channels[rec.id] = rec.topic
         elif isinstance(rec, Message) and rec.channel_id in channels:
             topic = channels[rec.channel_id]
             keep = decode is None or decode(topic)
