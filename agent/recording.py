@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from . import wire
@@ -21,13 +21,22 @@ from . import wire
 
 @dataclass
 class Recording:
-    """A recording as read: its ``flocktrack`` metadata, its messages in sequence order (message None: a key
-    ``decode`` left out), whether the file was whole, and how many messages failed validation."""
+    """A recording as read: its ``flocktrack`` metadata, its messages ``(key, message, log time ns)`` in
+    sequence order (message None: a key ``decode`` left out), whether the file was whole, how many messages
+    failed validation, and each message's publish time (``wall``, ns: when it was recorded).
+
+    The log time is the tick's simulated time ``k·T`` where ``metadata["timeline"] == "simulated"``; older
+    recordings have the wall clock in both (:attr:`simulated` tells which)."""
 
     metadata: dict[str, str]
     messages: list[tuple[str, wire.Message | None, int]]
     complete: bool = True
     rejected: int = 0
+    wall: list[int] = field(default_factory=list)
+
+    @property
+    def simulated(self) -> bool:
+        return self.metadata.get("timeline") == "simulated"
 
 
 def read_recording(path: str | Path, decode: Callable[[str], bool] | None = None) -> Recording:
@@ -37,7 +46,7 @@ def read_recording(path: str | Path, decode: Callable[[str], bool] | None = None
 
     path = Path(path)
     meta: dict[str, str] = {}
-    rows: list[tuple[int, str, bytes | None, int]] = []
+    rows: list[tuple[int, str, bytes | None, int, int]] = []
     complete = True
     try:
         with open(path, "rb") as f:
@@ -49,28 +58,32 @@ def read_recording(path: str | Path, decode: Callable[[str], bool] | None = None
                 if not _ours(schema.name if schema is not None else ""):
                     continue
                 keep = decode is None or decode(channel.topic)
-                rows.append((message.sequence, channel.topic, message.data if keep else None, message.log_time))
+                rows.append((message.sequence, channel.topic, message.data if keep else None, message.log_time,
+                             message.publish_time))
     except Exception:  # truncated / no summary: stream through what is there
         complete = False
         rows, meta = _stream(path, decode)
     rows.sort(key=lambda r: r[0])
     out: list[tuple[str, wire.Message | None, int]] = []
+    wall: list[int] = []
     rejected = 0
-    for _seq, topic, data, t in rows:
-        if data is None:
-            out.append((topic, None, t))
-            continue
+    for _seq, topic, data, t, published in rows:
         try:
-            out.append((topic, wire.from_json(json.loads(data)), t))
+            out.append((topic, None if data is None else wire.from_json(json.loads(data)), t))
         except (wire.WireError, ValueError):
             rejected += 1
-    return Recording(meta, out, complete, rejected)
+            continue
+        wall.append(published)
+    return Recording(meta, out, complete, rejected, wall)
+
+
+_WIRE_SCHEMAS = frozenset(f"flocktrack.{cls.__name__}" for cls in wire.MESSAGE_TYPES.values())
 
 
 def _ours(schema_name: str) -> bool:
     """A channel of :mod:`agent.wire` messages (``flocktrack.Tick`` …): the recording's other channels (the
-    ``foxglove.*`` views drawn from them) are derived and skipped by this reader."""
-    return schema_name.startswith("flocktrack.")
+    Foxglove views drawn from them) are derived and skipped by this reader."""
+    return schema_name in _WIRE_SCHEMAS
 
 
 def recording_metadata(path: str | Path) -> dict[str, str]:
@@ -94,7 +107,7 @@ def _stream(path: Path, decode: Callable[[str], bool] | None):
 
     schemas: dict[int, str] = {}
     channels: dict[int, str] = {}
-    rows: list[tuple[int, str, bytes | None, int]] = []
+    rows: list[tuple[int, str, bytes | None, int, int]] = []
     meta: dict[str, str] = {}
 
     def take(rec) -> None:
@@ -106,7 +119,7 @@ def _stream(path: Path, decode: Callable[[str], bool] | None):
         elif isinstance(rec, Message) and rec.channel_id in channels:
             topic = channels[rec.channel_id]
             keep = decode is None or decode(topic)
-            rows.append((rec.sequence, topic, rec.data if keep else None, rec.log_time))
+            rows.append((rec.sequence, topic, rec.data if keep else None, rec.log_time, rec.publish_time))
         elif isinstance(rec, Metadata) and rec.name == "flocktrack":
             meta.update(rec.metadata)
 

@@ -40,6 +40,7 @@ bit-exact (lockstep over Zenoh must give the same numbers as in-process).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, ClassVar
@@ -794,11 +795,13 @@ def key_for(msg: Message, role: str) -> str:
     return f"{role}/{msg.TYPE}"
 
 
-def _array_fields(cls: type[Message]) -> set[str]:
+@functools.cache
+def _array_fields(cls: type[Message]) -> frozenset[str]:
+    """The fields of ``cls`` that are arrays (once per type: reading a recording asks for every message)."""
     import typing
 
     hints = typing.get_type_hints(cls)
-    return {f.name for f in fields(cls) if "ndarray" in str(hints[f.name])}
+    return frozenset(f.name for f in fields(cls) if "ndarray" in str(hints[f.name]))
 
 
 def from_json(d: dict) -> Message:

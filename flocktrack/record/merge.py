@@ -45,19 +45,19 @@ def merge(dirs: list[str | Path], out: str | Path) -> tuple[dict, dict]:
     if len(set(runs.values())) > 1:
         raise MergeError("not one run: " + ", ".join(f"{d} is run {r!r}" for d, r in runs.items()))
     out.mkdir(parents=True, exist_ok=True)
-    messages = sorted(((t, i, key, msg) for i, (_, r) in enumerate(recs) for key, msg, t in r.messages),
-                      key=lambda m: (m[0], m[1]))
+    messages = sorted(((t, i, key, msg, wall) for i, (_, r) in enumerate(recs)
+                       for (key, msg, t), wall in zip(r.messages, r.wall)), key=lambda m: (m[0], m[4], m[1]))
     seen: set[tuple[str, bytes]] = set()
     rec = McapRecorder(out / "recording.mcap", dict(first.metadata))
     dup = 0
     try:
-        for t, _, key, msg in messages:
+        for t, _, key, msg, wall in messages:
             ident = (key, wire.encode(msg))
             if ident in seen:     # a message two shards both recorded (e.g. one host's control plane)
                 dup += 1
                 continue
             seen.add(ident)
-            rec.write(key, msg, t)
+            rec.write(key, msg, t, wall_ns=wall)
     finally:
         rec.finish()
     for d in dirs:

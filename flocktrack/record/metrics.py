@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import json
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -102,48 +103,45 @@ class MetricsCollector:
 
     # ------------------------------------------------------------------ per tick
     def rows(self) -> list[dict]:
-        out = []
-        for k in range(self.ticks):
-            if k not in self._truth:
-                continue
-            x = self._truth[k]
-            est = self._est.get(k, {})
-            row: dict = {"k": k}
-            tick = self._ticks.get(k)
-            row["t"] = tick.t if tick else math.nan
-            errs = {i: float(np.linalg.norm(est[i][: self.d] - x[: self.d])) for i in sorted(est)}
-            for i in range(self.n):
-                row[f"err_{i}"] = errs.get(i, math.nan)
-            if errs:
-                ev = np.array([errs[i] for i in sorted(errs)])
-                row["rmse"] = float(np.sqrt(np.mean(ev ** 2)))
-                X = np.array([est[i] for i in sorted(est)])
-                row["tmsee"] = float(np.sum((X - x[None, :]) ** 2))
-                xbar = X.mean(axis=0)
-                row["mean_err"] = float(np.linalg.norm(xbar[: self.d] - x[: self.d]))
-                row["disagreement"] = float(np.sqrt(np.mean(np.sum((X - xbar[None, :]) ** 2, axis=1))))
-                row["reporting"] = len(est)
+        """``metrics.csv``: :meth:`row` of every tick with a truth."""
+        return [r for r in map(self.row, range(self.ticks)) if r is not None]
+
+    def row(self, k: int) -> dict | None:
+        """Tick ``k``'s metrics (None before its truth is known): per-node errors, RMSE, TMSEE, the mean
+        estimate's error, disagreement, links, λ₂, connectivity, the closest two agents."""
+        if k not in self._truth:
+            return None
+        x = self._truth[k]
+        est = self._est.get(k, {})
+        row: dict = {"k": k}
+        tick = self._ticks.get(k)
+        row["t"] = tick.t if tick else math.nan
+        errs = {i: float(np.linalg.norm(est[i][: self.d] - x[: self.d])) for i in sorted(est)}
+        for i in range(self.n):
+            row[f"err_{i}"] = errs.get(i, math.nan)
+        if errs:
+            ev = np.array([errs[i] for i in sorted(errs)])
+            row["rmse"] = float(np.sqrt(np.mean(ev ** 2)))
+            X = np.array([est[i] for i in sorted(est)])
+            row["tmsee"] = float(np.sum((X - x[None, :]) ** 2))
+            xbar = X.mean(axis=0)
+            row["mean_err"] = float(np.linalg.norm(xbar[: self.d] - x[: self.d]))
+            row["disagreement"] = float(np.sqrt(np.mean(np.sum((X - xbar[None, :]) ** 2, axis=1))))
+            row["reporting"] = len(est)
+        else:
+            row.update(rmse=math.nan, tmsee=math.nan, mean_err=math.nan, disagreement=math.nan, reporting=0)
+        if self.tmsee_lower is not None and k < len(self.tmsee_lower):
+            row["tmsee_lower"] = self.tmsee_lower[k]
+        if tick is not None:
+            row["links"], row["lambda2"], row["connected"] = _graph_metrics(tuple(map(tuple, tick.links)))
+            P = tick.positions
+            if P.shape[0] > 1:
+                D = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2)
+                row["min_dist"] = float(D[np.triu_indices(P.shape[0], 1)].min())
             else:
-                row.update(rmse=math.nan, tmsee=math.nan, mean_err=math.nan, disagreement=math.nan, reporting=0)
-            if self.tmsee_lower is not None and k < len(self.tmsee_lower):
-                row["tmsee_lower"] = self.tmsee_lower[k]
-            if tick is not None:
-                adj = np.zeros((tick.n, tick.n))
-                for i, nb in enumerate(tick.links):
-                    for j in nb:
-                        adj[i, j] = 1.0
-                row["links"] = int(adj.sum() // 2)
-                row["lambda2"] = float(algebraic_connectivity(adj))
-                row["connected"] = int(is_connected(adj))
-                P = tick.positions
-                if P.shape[0] > 1:
-                    D = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2)
-                    row["min_dist"] = float(D[np.triu_indices(P.shape[0], 1)].min())
-                else:
-                    row["min_dist"] = math.nan
-                row["visible"] = int(sum(1 for b in tick.b if b > 0))
-            out.append(row)
-        return out
+                row["min_dist"] = math.nan
+            row["visible"] = int(sum(1 for b in tick.b if b > 0))
+        return row
 
     # ------------------------------------------------------------------ summary
     def summary(self, extra: dict | None = None) -> dict:
@@ -193,6 +191,18 @@ class MetricsCollector:
         if extra:
             s.update(extra)
         return s
+
+    def forget(self, upto: int) -> None:
+        """Drop what is kept of the ticks up to ``upto`` (a live consumer done with them: the recorder's
+        views keep a few ticks, not the run)."""
+        for d in (self._truth, self._est, self._ticks, self._target_pos, self._w, self._v, self._eps):
+            for k in [k for k in d if k <= upto]:
+                del d[k]
+        self._meas_pos.clear()
+
+    def truth_at(self, k: int) -> np.ndarray | None:
+        """The target's true state at tick ``k`` (None: not recorded)."""
+        return self._truth.get(k)
 
     def truth_position(self, t: float) -> np.ndarray | None:
         """The target position at time t: cubic Hermite between the tick truths (position, velocity)."""
@@ -262,6 +272,18 @@ class MetricsCollector:
             for r in rows:
                 w.writerow({c: _fmt(r.get(c, "")) for c in cols})
         return summary
+
+
+@functools.lru_cache(maxsize=256)
+def _graph_metrics(links: tuple[tuple[int, ...], ...]) -> tuple[int, float, int]:
+    """(undirected links, λ₂, connected) of a tick's neighbour lists — the graph changes far less often
+    than every tick, so the eigen-solve is cached by the lists."""
+    n = len(links)
+    adj = np.zeros((n, n))
+    for i, nb in enumerate(links):
+        for j in nb:
+            adj[i, j] = 1.0
+    return int(adj.sum() // 2), float(algebraic_connectivity(adj)), int(is_connected(adj))
 
 
 def _nan_to_none(v):

@@ -25,10 +25,13 @@ def recover(path: str | Path, out: str | Path | None = None) -> tuple[Path, Reco
     path = Path(path)
     rec = read_recording(path)
     dst = Path(out) if out is not None else path.with_name(path.stem + ".recovered.mcap")
-    w = McapRecorder(dst, rec.metadata)   # (numbers them 0, 1, … in the order read: sequence order)
+    meta = dict(rec.metadata)
+    if not rec.simulated:
+        meta["timeline"] = "wall"        # an older recording: its log times stay the wall clock
+    w = McapRecorder(dst, meta)   # (numbers them 0, 1, … in the order read: sequence order)
     try:
-        for key, msg, t in rec.messages:
-            w.write(key, msg, t)
+        for (key, msg, t), wall in zip(rec.messages, rec.wall):
+            w.write(key, msg, t, wall_ns=wall)
     finally:
         w.finish()
     return dst, rec

@@ -1,7 +1,15 @@
 """The MCAP writer of a run: every message as JSON on a channel named by its relative key
 (``world/tick``, ``agent/3/estimate``, …) with a JSON Schema per message type; small chunks and an unbuffered
 file, so a crash loses at most the last chunk; the scenario (TOML text) and the pre-run design stored as
-metadata, so a recording is self-contained."""
+metadata, so a recording is self-contained.
+
+The timeline is the experiment's: a message's ``log_time`` is its tick's simulated time ``k·T`` (from the
+scenario in the metadata; ``timeline = "simulated"`` in it), its ``publish_time`` the wall clock when it was
+recorded — in every mode, so a recording of a paused or slowed run reads like one of a fast run. Recordings
+written before this kept the wall clock in both (no ``timeline`` entry): the readers take either.
+
+Beside the messages the writer adds Foxglove's views of them (:mod:`flocktrack.record.foxglove`): the 3-D
+scene, the log, flat per-tick metrics — when the scenario is known and ``foxglove-sdk`` is installed."""
 
 from __future__ import annotations
 
@@ -10,6 +18,8 @@ import logging
 import time
 from collections import Counter
 from pathlib import Path
+
+import orjson
 
 from agent import wire
 
@@ -22,7 +32,8 @@ FLUSH_S = 0.5
 
 
 class McapRecorder:
-    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
+    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None, *, views: bool = True):
+        """``views``: add the Foxglove views (when the metadata holds a scenario and foxglove-sdk is there)."""
         from mcap.writer import CompressionType, Writer
 
         self.path = Path(path)
@@ -37,11 +48,19 @@ class McapRecorder:
         self._channels: dict[str, int] = {}
         self.seq = 0
         self.counts: Counter = Counter()
+        self.views: Counter = Counter()          #: view messages written per topic
         self.dropped: Counter = Counter()
         self._finished = False
         self._open_since: float | None = None   # when the chunk in progress got its first message
+        metadata = {k: str(v) for k, v in (metadata or {}).items()}
+        sc = _scenario(metadata)
+        self.T = None if sc is None else float(sc.run.T)
+        if self.T is not None:
+            metadata.setdefault("timeline", "simulated")
+        self._views = _views(sc) if views and sc is not None else None
+        self._view_channels: dict[str, int] = {}
         if metadata:
-            self._w.add_metadata("flocktrack", {k: str(v) for k, v in metadata.items()})
+            self._w.add_metadata("flocktrack", metadata)
         self._f.flush()
 
     def write_raw(self, key: str, data: bytes, t_ns: int | None = None) -> None:
@@ -56,19 +75,61 @@ class McapRecorder:
             return
         self.write(key, msg, t_ns)
 
-    def write(self, key: str, msg: wire.Message, t_ns: int | None = None) -> None:
+    def write(self, key: str, msg: wire.Message, t_ns: int | None = None, *, wall_ns: int | None = None) -> None:
+        """Record ``msg`` on ``key``: at log time ``t_ns`` (default: its tick's simulated time, or the wall
+        clock without a scenario) and publish time ``wall_ns`` (default: now) — a copy (recover, merge)
+        passes both from its source."""
         ch = self._channels.get(key)
         if ch is None:
             ch = self._channels[key] = self._w.register_channel(
                 topic=key, message_encoding="json", schema_id=self._schemas[msg.TYPE])
-        t = time.time_ns() if t_ns is None else t_ns
-        self._w.add_message(ch, log_time=t, data=msg.to_json_bytes(), publish_time=t,
-                            sequence=self.seq)
+        wall = time.time_ns() if wall_ns is None else wall_ns
+        t = t_ns if t_ns is not None else wall if self.T is None else round(max(msg.k, 0) * self.T * 1e9)
+        self._w.add_message(ch, log_time=t, data=msg.to_json_bytes(), publish_time=wall, sequence=self.seq)
         self.seq += 1
         self.counts[key] += 1
+        if self._views is not None:
+            self._write_views(lambda v: v.of(key, msg, t), wall)
         if self._open_since is None:
             self._open_since = time.monotonic()
         self.tick()
+
+    def _write_views(self, make, wall: int) -> None:
+        """The Foxglove views ``make(views)`` returns; a view that fails is counted, never raised (the
+        messages themselves are already recorded)."""
+        try:
+            views = make(self._views)
+            for topic, view, t in views:
+                if isinstance(view, dict):
+                    data = orjson.dumps(view, option=orjson.OPT_SERIALIZE_NUMPY)
+                else:
+                    data = view.encode()
+                self._w.add_message(self._view_channel(topic, view), log_time=t, data=data, publish_time=wall,
+                                    sequence=self.seq)
+                self.seq += 1
+                self.views[topic] += 1
+        except Exception as exc:  # noqa: BLE001 — a view is never worth a message
+            self.dropped["view_failed"] += 1
+            if self.dropped["view_failed"] == 1:
+                log.warning("a Foxglove view failed (%s: %s); the messages are recorded, the views may have gaps",
+                            type(exc).__name__, exc)
+
+    def _view_channel(self, topic: str, view) -> int:
+        ch = self._view_channels.get(topic)
+        if ch is None:
+            if isinstance(view, dict):
+                from .foxglove import METRICS_SCHEMA
+
+                sid = self._w.register_schema(name="flocktrack.view.TickMetrics", encoding="jsonschema",
+                                              data=json.dumps(METRICS_SCHEMA).encode())
+                encoding = "json"
+            else:
+                schema = type(view).get_schema()
+                sid = self._w.register_schema(name=schema.name, encoding=schema.encoding, data=bytes(schema.data))
+                encoding = schema.encoding
+            ch = self._view_channels[topic] = self._w.register_channel(topic=topic, message_encoding=encoding,
+                                                                        schema_id=sid)
+        return ch
 
     def tick(self) -> None:
         """Close the chunk in progress once it is FLUSH_S old (also called when no message comes): what is
@@ -107,9 +168,36 @@ class McapRecorder:
             return
         self._finished = True
         try:
+            if self._views is not None:
+                self._write_views(lambda v: v.finish(), time.time_ns())
             self._w.finish()
         finally:
             self._f.close()
+
+
+def _scenario(metadata: dict[str, str]):
+    """The scenario the metadata holds (None: none, or one this version cannot read — the recording is still
+    written, on the wall clock and without views)."""
+    if not metadata.get("scenario", "").strip():
+        return None
+    import tomllib
+
+    from agent.scenario import parse_scenario
+
+    try:
+        return parse_scenario(tomllib.loads(metadata["scenario"]), metadata.get("scenario_path", "recording"))
+    except Exception as exc:  # noqa: BLE001 — an unreadable scenario must not stop the recording
+        log.warning("the recording's scenario does not parse (%s): wall-clock times, no Foxglove views", exc)
+        return None
+
+
+def _views(sc):
+    from .foxglove import FoxgloveViews, available
+
+    if not available():
+        log.info("foxglove-sdk is not installed: the recording has no Foxglove views")
+        return None
+    return FoxgloveViews(sc)
 
 
 class _PackedRecord:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dashboards import frames
-from dashboards.probe import _decode_frame, report_camera
+from dashboards.probe import decode_frame, report_camera
 
 viser = pytest.importorskip("viser")
 
@@ -28,7 +28,7 @@ def _reader(ws, out: list, stop: threading.Event) -> None:
 
 def _messages(raw: list[bytes], kind: str) -> list:
     """The messages of type ``kind`` on the target in a tab's frames, in order (as decoded)."""
-    return [m for f in list(raw) for m in _decode_frame(f) if m.get("type") == kind and m.get("name") == "/flock/target"]
+    return [m for f in list(raw) for m in decode_frame(f) if m.get("type") == kind and m.get("name") == "/flock/target"]
 
 
 def test_tabs_that_keep_up_share_one_encoding_and_read_the_same_stream():
@@ -86,7 +86,7 @@ def test_tabs_that_keep_up_share_one_encoding_and_read_the_same_stream():
     shared = after["frames_shared"] - before["frames_shared"]
     assert encoded > 0 and shared >= encoded, (encoded, shared)
     # a point cloud's array rides as raw bytes after the compressed messages, 8-byte aligned
-    clouds = [f for f in received[0] if any(m.get("type") == "PointCloudMessage" for m in _decode_frame(f))]
+    clouds = [f for f in received[0] if any(m.get("type") == "PointCloudMessage" for m in decode_frame(f))]
     raw = (points + 10).tobytes()
     at = [f.find(raw) for f in clouds if raw in f]
     assert at and all(i % 8 == 0 for i in at), at

@@ -140,7 +140,7 @@ def test_cut_a_hosts_link_and_heal_it(net, tmp_path):
     assert all(not any(alive[k][i] for i in VICTIMS) for k in dead_ticks)
     assert all(all(alive[k][j] for j in range(10) if j not in VICTIMS) for k in alive)
     est: dict[int, dict[int, float]] = {}
-    for key, m, t in rec.messages:
+    for (key, m, _t), t in zip(rec.messages, rec.wall):          # when each was recorded: the wall clock
         if key.startswith("agent/") and key.endswith("/estimate"):
             est.setdefault(m.src, {})[m.k] = t / 1e9
     for i in VICTIMS:

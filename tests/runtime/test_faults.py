@@ -116,11 +116,11 @@ def test_process_faults_crash_pause_router_restart_over_zenoh(tmp_path):
     assert info["exits"]["agent/1"][0] == -9
     # pause: agent 2 falls silent from the pause until the heal (SIGCONT) while the others go on, then
     # catches up (its buffered ticks, or coasting over the lost ones) and finishes
-    t_ev = {m.args["phase"]: t for key, m, t in rec.messages
+    t_ev = {m.args["phase"]: t for (key, m, _), t in zip(rec.messages, rec.wall)     # (recorded: wall clock)
             if key == "world/event" and m.verb == "fault" and m.args.get("kind") == "pause"}
     window = (t_ev["start"] + 0.3e9, t_ev["heal"])
     during = defaultdict(int)
-    for key, m, t in rec.messages:
+    for (key, m, _), t in zip(rec.messages, rec.wall):
         if key.startswith("agent/") and window[0] < t < window[1]:
             during[m.src] += 1
     assert during[2] == 0 and during[0] > 0 and during[1] > 0, dict(during)

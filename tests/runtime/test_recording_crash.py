@@ -16,6 +16,7 @@ from flocktrack.record.writer import FLUSH_S
 from flocktrack.record.reader import read_recording
 
 from conftest import ROOT
+from mcap_js import foxglove_read
 
 
 @pytest.mark.slow
@@ -29,7 +30,7 @@ def test_kill_9_of_the_launcher_leaves_a_readable_recording_short_of_at_most_a_s
     while time.monotonic() < end and not (rec_file.exists() and rec_file.stat().st_size > 300_000):
         time.sleep(0.2)
     assert rec_file.exists(), "the run never got going"
-    time.sleep(2.0)                       # a steady stream: ticks every 0.1 s
+    time.sleep(2.0)                       # a steady stream: a tick every T = 0.04 s
     t_kill = time.time_ns()
     proc.send_signal(signal.SIGKILL)
     proc.wait(30)
@@ -37,11 +38,18 @@ def test_kill_9_of_the_launcher_leaves_a_readable_recording_short_of_at_most_a_s
 
     rec = read_recording(rec_file)
     assert not rec.complete and len(rec.messages) > 100
-    last = max(t for _k, _m, t in rec.messages)
+    last = max(rec.wall)                  # when the last message was recorded
     lost_s = (t_kill - last) / 1e9
     assert lost_s < 1.0, f"the last recorded message is {lost_s:.2f} s older than the kill (FLUSH_S = {FLUSH_S})"
     ticks = sorted(m.k for k, m, _t in rec.messages if k == "world/tick")
     assert ticks == list(range(len(ticks)))          # what is there has no hole
+    # a realtime run too is recorded on the simulated clock: k·T
+    assert rec.simulated and all(t == round(m.k * 0.04 * 1e9) for _k, m, t in rec.messages)
+    # Foxglove's own reader reads the cut file as far as it goes, every message and view decoding
+    cut = foxglove_read(rec_file, "stream")
+    assert not cut["complete"] and cut["decodeErrors"] == 0, cut["firstError"]
+    assert {"foxglove.SceneUpdate", "foxglove.FrameTransforms"} <= set(cut["schemas"])
+    assert cut["perTopic"]["world/tick"] >= len(ticks) - 10
 
     # flocktrack metrics reads the truncated file as it is ...
     assert main(["metrics", str(rec_file), "--out", str(tmp_path / "m1")]) == 0
@@ -54,8 +62,13 @@ def test_kill_9_of_the_launcher_leaves_a_readable_recording_short_of_at_most_a_s
     with open(fixed, "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
-        assert summary is not None and summary.statistics.message_count == len(rec.messages)
-        assert sum(1 for _ in reader.iter_messages()) == len(rec.messages)
+        ours = {c.id for c in summary.channels.values() if summary.schemas[c.schema_id].name.startswith("flocktrack.")
+                and not summary.schemas[c.schema_id].name.startswith("flocktrack.view.")}
+        assert sum(summary.statistics.channel_message_counts[c] for c in ours) == len(rec.messages)
+        assert sum(1 for _ in reader.iter_messages()) == summary.statistics.message_count
+    whole = foxglove_read(fixed, "whole")            # ... that Foxglove's reader opens whole, CRCs checked
+    assert whole["complete"] and whole["readError"] is None and whole["decodeErrors"] == 0, whole["firstError"]
+    assert {"foxglove.SceneUpdate", "foxglove.FrameTransforms"} <= set(whole["schemas"])   # (no event: no log)
     again = read_recording(fixed)
     assert again.complete and again.metadata == rec.metadata
     assert [(k, t) for k, _m, t in again.messages] == [(k, t) for k, _m, t in rec.messages]
