@@ -17,6 +17,7 @@ SCENARIO is a scenario file or the name of a bundled one (``flocktrack scenarios
     flocktrack sweep SCENARIO --grid KEY=V1,V2 ... --seeds S --out DIR
     flocktrack metrics RECORDING --out DIR
     flocktrack recover RECORDING [--out FILE]
+    flocktrack export RUN --format parquet|csv --out DIR   (a run's tables: ticks, estimates, links, events, faults)
     flocktrack replay RECORDING [--connect ENDPOINT] [--speed X]
 """
 
@@ -473,11 +474,13 @@ def parser() -> _Parser:
     dg.set_defaults(fn=cmd_design)
     _add_fault(sub)
     _add_inspection(sub)
+    from flocktrack.analysis import export as _export
     from flocktrack.plan import cli as _plan
     from flocktrack.record import merge as _merge
 
     _plan.register(sub)
     _merge.register(sub)
+    _export.register(sub)
     from flocktrack.deploy import compose as _compose
     from flocktrack.experiment import sweep as _experiment
     from flocktrack.deploy import image as _image

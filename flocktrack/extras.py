@@ -3,16 +3,19 @@
 The main job needs none of them. ``pip install 'flocktrack[design]'`` brings cvxpy with its solvers (the
 SDP design of the min-energy H∞ filters, the sum-of-norms reference solver), ``flocktrack[figures]``
 matplotlib (the sweeps' PNGs, the dashboard's static picture), ``flocktrack[fusion]`` numba (the
-compiled kernels of the sum-of-norms fusion: the ``carrillo_*`` scenarios), ``flocktrack[all]`` all three.
+compiled kernels of the sum-of-norms fusion: the ``carrillo_*`` scenarios), ``flocktrack[analysis]`` pandas
+and pyarrow (a run as tables: ``flocktrack.load``, ``flocktrack export``), ``flocktrack[all]`` all four.
 """
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
+from types import ModuleType
 
 #: top-level module → the extra that installs it
 EXTRA_OF = {"cvxpy": "design", "clarabel": "design", "scs": "design", "matplotlib": "figures", "numba": "fusion",
-            "llvmlite": "fusion"}
+            "llvmlite": "fusion", "pandas": "analysis", "pyarrow": "analysis"}
 
 
 def install_line(extra: str) -> str:
@@ -31,3 +34,15 @@ def missing_extra(exc: BaseException) -> str | None:
 def has(module: str) -> bool:
     """Whether ``module`` can be imported (without importing it)."""
     return importlib.util.find_spec(module) is not None
+
+
+def require(module: str) -> ModuleType:
+    """Import ``module``, an optional dependency; where it is missing, raise ModuleNotFoundError whose message
+    is :func:`missing_extra`'s line (the CLI prints that line, a caller of the library reads it)."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        line = missing_extra(exc)
+        if line is None:
+            raise
+        raise ModuleNotFoundError(line, name=exc.name) from None

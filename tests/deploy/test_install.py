@@ -143,7 +143,8 @@ def test_design_of_a_bundled_scenario(installed):
 
 @pytest.mark.parametrize("argv, extra", [(["design", "zamani_chua", "--out", "z.json"], "design"),
                                          (["validate", "carrillo_uav"], "fusion"),
-                                         (["sweep", "gu_hu_normal", "--seeds", "1", "--out", "sw"], "figures")])
+                                         (["sweep", "gu_hu_normal", "--seeds", "1", "--out", "sw"], "figures"),
+                                         (["export", "a-run", "--out", "tables"], "analysis")])
 def test_a_missing_extra_is_one_line_naming_it(installed, argv, extra):
     r = ft(installed, *argv)
     assert r.returncode == 2
