@@ -354,6 +354,7 @@ class DashboardState:
         self.paused = False
         self.speed: float | None = None
         self.events: deque[tuple[int, str, dict]] = deque(maxlen=50)    # world/event acks
+        self.late_ticks = 0     #: ticks the world closed without every sensor's state (world/event "late")
         self.controls: deque[tuple[int, str, dict]] = deque(maxlen=50)  # control/** seen
         self.last_now = 0.0
         self.has_fusion = False                  # a fusion solver publishes: wait for its estimate too
@@ -427,7 +428,9 @@ class DashboardState:
                 if f is not None:
                     f.state_pos[msg.src] = msg.pos
         elif isinstance(msg, Control):
-            if key == "world/event":
+            if key == "world/event" and msg.verb == "late":
+                self.late_ticks += 1      # (a tick closed without some states: counted, not the last event)
+            elif key == "world/event":
                 self.events.append((msg.k, msg.verb, dict(msg.args)))
                 if msg.verb == "pause":
                     self.paused = True

@@ -424,6 +424,9 @@ class WorldRole(Role):
             self.stats["missing_states"] += len(missing)
             log.info("world: tick %d closed without the states of %d sensors (%s)", self.k, len(missing),
                      _few(sorted(missing)))
+            # on the run's record too (recordings, the Foxglove log, flocktrack.load's events): at most one a tick
+            self.publish("world/event", Control(k=self.k, verb="late", args={"missing": len(missing),
+                                                                             "agents": sorted(missing)[:64]}))
         for i, s in self._states.items():
             self.positions[i] = s.pos[: self.positions.shape[1]]
         if self._target_state is not None:

@@ -22,6 +22,7 @@ SIGKILLed. No orphan processes.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import socket
@@ -36,6 +37,8 @@ from flocktrack.launch.commands import Child, Commands, LaunchOptions
 from flocktrack.launch.forkserver import ForkedProcess, die_with_parent, forkable, start_server
 from flocktrack.plan.model import RunPlan
 from flocktrack.resources import broker_config
+
+log = logging.getLogger(__name__)
 
 LOCAL_ROUTER_CFG = "local.json5"
 
@@ -91,6 +94,9 @@ def worth_showing(line: str, in_traceback: bool) -> tuple[bool, bool]:
         return True, line[:1].isspace()
     return line.startswith(_ALARMS) or " WARN " in line or " ERROR " in line, False
 
+
+#: the lifecycle events of a child that the launcher also publishes (verb ``process`` on ``launcher/event``)
+PROCESS_EVENTS = frozenset({"exit", "spawn", "restart", "killed"})
 
 class Launcher:
     """Spawns and supervises the processes of one host of a :class:`~flocktrack.plan.RunPlan`."""
@@ -188,6 +194,22 @@ class Launcher:
     def _event(self, what: str, name: str, **kw) -> None:
         with self._lock:
             self.events.append({"t": time.time(), "event": what, "name": name, **kw})
+        if what in PROCESS_EVENTS:
+            self._publish_process(what, name, kw)
+
+    def _publish_process(self, what: str, name: str, kw: dict) -> None:
+        """A child's life on the record: ``launcher/event`` verb ``process`` (event exit / spawn / restart /
+        killed, the node, its exit code or rejoin), so a recording shows crashes and rejoins on its timeline."""
+        bus = self.ctl_bus
+        if bus is None or not self.ticking or (what == "exit" and kw.get("rc") == 0):
+            return       # (the start-up spawns are the plan, and a clean exit at the end is not news)
+        from agent.wire import Control
+
+        args = {"event": what, "name": name, **{a: kw[a] for a in ("rc", "rejoin", "attempt") if a in kw}}
+        try:
+            bus.publish("launcher/event", Control(k=self.tick_seen, verb="process", args=args))
+        except Exception as exc:  # noqa: BLE001 — the bus closing under a late exit: the event stays in events.json
+            log.debug("process event %s %s not published: %s", what, name, exc)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:

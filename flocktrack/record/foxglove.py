@@ -15,8 +15,9 @@ topic                  schema                        what
 ``/scene/target``      ``foxglove.SceneUpdate``      the target's true position
 ``/scene/estimates``   ``foxglove.SceneUpdate``      each node's estimate and its 2-σ ellipse (from P), a
                                                      flat ellipsoid
-``/log``               ``foxglove.Log``              faults (start: warning, heal: info), kills, restarts,
-                                                     operator controls, the run's end
+``/log``               ``foxglove.Log``              faults (start: warning, heal: info), crashes (error),
+                                                     restarts and rejoins, ticks that closed without some
+                                                     sensors' states (warning), operator controls, the end
 ``/metrics``           JSON (flat fields)            per tick: ``rmse``, ``tmsee``, ``disagreement``,
                                                      ``lambda2``, ``links``, ``messages``, ``err_<i>`` …
 =====================  ============================  =====================================================
@@ -101,8 +102,7 @@ class FoxgloveViews:
         elif isinstance(msg, wire.Control):
             out.append(("/log", self._log(key, msg, t_ns), t_ns))
         elif isinstance(msg, wire.End):
-            out.append(("/log", self._entry(t_ns, "Info", f"run over after {msg.k} ticks ({msg.reason})", "world"),
-                        t_ns))
+            out.append(("/log", self._entry(t_ns, *log_line(key, msg)), t_ns))
         return out
 
     def finish(self) -> list[tuple[str, object, int]]:
@@ -207,17 +207,7 @@ class FoxgloveViews:
 
     # ------------------------------------------------------------------ the log
     def _log(self, key: str, msg: wire.Control, t_ns: int):
-        a = msg.args
-        if msg.verb == "fault":
-            phase = str(a.get("phase", ""))
-            text = f"fault {a.get('id', '?')} {a.get('kind', '?')} {phase}" + _agents(a)
-            level = _LEVELS.get(phase, "Info")
-        elif msg.verb == "ack":
-            text, level = f"acknowledged fault {a.get('id', '?')} {a.get('kind', '?')} {a.get('phase', '')}", "Debug"
-        else:
-            text = " ".join([msg.verb] + [f"{n}={v}" for n, v in sorted(a.items())])
-            level = _LEVELS.get(msg.verb, "Info")
-        return self._entry(t_ns, level, f"k={msg.k}: {text}", key.rsplit("/", 1)[0] if key.endswith("/event") else key)
+        return self._entry(t_ns, *log_line(key, msg))
 
     def _entry(self, t_ns: int, level: str, text: str, name: str):
         fm = self.fm
@@ -225,9 +215,43 @@ class FoxgloveViews:
                       file="", line=0)
 
 
+def log_line(key: str, msg: wire.Control | wire.End) -> tuple[str, str, str]:
+    """The ``/log`` entry of an event message: (level, text, name of who said it)."""
+    if isinstance(msg, wire.End):
+        return "Info", f"run over after {msg.k} ticks ({msg.reason})", "world"
+    a = msg.args
+    if msg.verb == "fault":
+        phase = str(a.get("phase", ""))
+        text = f"fault {a.get('id', '?')} {a.get('kind', '?')} {phase}" + _agents(a)
+        level = _LEVELS.get(phase, "Info")
+    elif msg.verb == "late":
+        text, level = f"tick closed without the states of {a.get('missing', '?')} sensors" + _agents(a), "Warning"
+    elif msg.verb == "process":
+        text, level = _process(a)
+    elif msg.verb == "ack":
+        text, level = f"acknowledged fault {a.get('id', '?')} {a.get('kind', '?')} {a.get('phase', '')}", "Debug"
+    else:
+        text = " ".join([msg.verb] + [f"{n}={v}" for n, v in sorted(a.items())])
+        level = _LEVELS.get(msg.verb, "Info")
+    return level, f"k={msg.k}: {text}", key.rsplit("/", 1)[0] if key.endswith("/event") else key
+
+
+def _process(a: dict) -> tuple[str, str]:
+    """A child's life (the launcher's ``process`` events) as a log line and its level."""
+    name, event = a.get("name", "?"), a.get("event", "?")
+    if event == "exit":
+        rc = a.get("rc")
+        return (f"{name} exited ({rc})", "Info") if rc == 0 else (f"{name} crashed (exit {rc})", "Error")
+    if event == "spawn":
+        return (f"{name} restarted, rejoining", "Warning") if a.get("rejoin") else (f"{name} started", "Info")
+    return f"{name}: {event}" + (f" (attempt {a['attempt']})" if "attempt" in a else ""), "Warning"
+
+
 def _agents(a: dict) -> str:
     agents = a.get("agents")
-    return f" (agents {agents})" if agents not in (None, "", []) else ""
+    if isinstance(agents, list):
+        agents = ", ".join(f"agent/{int(x)}" for x in agents)
+    return f" ({agents})" if agents not in (None, "") else ""
 
 
 def _stamp(fm, t_ns: int):
@@ -247,17 +271,24 @@ def _yaw(fm, yaw: float):
     return fm.Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
 
 
-def _ellipse(fm, at: dict, P2: np.ndarray, sigmas: float = 2.0):
-    """The ``sigmas``-σ ellipse of a 2×2 position covariance around ``at``: a flat translucent ellipsoid
-    along its principal axes (None if ``P2`` is not a covariance)."""
+def ellipse_axes(P2: np.ndarray, sigmas: float = 2.0) -> tuple[float, float, float] | None:
+    """The ``sigmas``-σ ellipse of a 2×2 position covariance: (major diameter, minor diameter, the major
+    axis' angle); None if ``P2`` is not a covariance."""
     P2 = 0.5 * (P2 + P2.T)
     if not np.isfinite(P2).all():
         return None
     w, V = np.linalg.eigh(P2)
     if w.min() < 0:
         return None
-    a, b = 2 * sigmas * np.sqrt(w[::-1])          # diameters along the major, then the minor axis
-    yaw = math.atan2(V[1, 1], V[0, 1])             # the major axis' direction
+    a, b = 2 * sigmas * np.sqrt(w[::-1])
+    return float(a), float(b), math.atan2(V[1, 1], V[0, 1])
+
+
+def _ellipse(fm, at: dict, P2: np.ndarray, sigmas: float = 2.0):
+    """:func:`ellipse_axes` around ``at`` as a flat translucent ellipsoid (None if not a covariance)."""
+    axes = ellipse_axes(P2, sigmas)
+    if axes is None:
+        return None
+    a, b, yaw = axes
     return fm.SpherePrimitive(pose=fm.Pose(position=fm.Vector3(**at), orientation=_yaw(fm, yaw)),
-                              size=fm.Vector3(x=float(a), y=float(b), z=0.01),
-                              color=fm.Color(r=1.0, g=0.55, b=0.1, a=0.25))
+                              size=fm.Vector3(x=a, y=b, z=0.01), color=fm.Color(r=1.0, g=0.55, b=0.1, a=0.25))

@@ -160,6 +160,10 @@ def test_kill_9_a_sensor_mid_run_restart_and_rejoin(tmp_path, mode, scen, ticks)
     errs = [float(rows[k][f"err_{victim}"]) for k in range(back, min(back + 20, ticks))]
     others = [float(rows[k]["rmse"]) for k in range(back, min(back + 20, ticks))]
     assert max(errs) < max(1.0, 5 * max(others)), (errs, others)
+    # the crash and the rejoin are on the recording's timeline: the launcher's process events
+    life = [(m.args["event"], m.args.get("rc"), m.args.get("rejoin")) for key, m, _ in rec.messages
+            if key == "launcher/event" and m.verb == "process" and m.args.get("name") == f"agent/{victim}"]
+    assert ("exit", -signal.SIGKILL, None) in life and ("spawn", None, True) in life, life
 
 
 @pytest.mark.slow
