@@ -47,7 +47,9 @@ class MetricsCollector:
 
     def __init__(self, n: int, ticks: int, pos_dims: int, burn_in: int = 0,
                  tmsee_lower: Sequence[float] | None = None, *, design: dict | None = None, T: float | None = None,
-                 summary_hook: SummaryHook | None = None):
+                 summary_hook: SummaryHook | None = None, reference=None):
+        """``reference``: the centralized model the estimates are held against
+        (:class:`flocktrack.record.credibility.Reference`; None: no efficiency)."""
         self.summary_hook = summary_hook
         self.n, self.ticks, self.d, self.burn_in = int(n), int(ticks), int(pos_dims), int(burn_in)
         self.tmsee_lower = None if tmsee_lower is None else [float(v) for v in tmsee_lower]
@@ -61,13 +63,19 @@ class MetricsCollector:
         self._eps: dict[int, dict[int, dict[str, np.ndarray]]] = {}
         self._fusion: dict[str, list[tuple[float, float, np.ndarray, np.ndarray]]] = {}
         self._meas_pos: list[tuple[float, np.ndarray]] = []
+        self._cov: dict[int, dict[int, np.ndarray]] = {}          #: tick → node → the P reported for its x̂
+        self._meas: dict[int, dict[int, tuple[float, np.ndarray]]] = {}   #: tick → node → (b, y)
+        self.reference = reference
 
     @classmethod
     def for_scenario(cls, sc, design: Mapping[str, Any]) -> "MetricsCollector":
         """The collector of scenario ``sc`` with the runtime's pre-run ``design``."""
         spec = specs().get(sc.estimator.name)
+        from .credibility import Reference
+
         return cls(sc.sensors.n, sc.run.ticks, sc.pos_dims, sc.run.burn_in, design.get("tmsee_lower"),
-                   design=dict(design), T=sc.run.T, summary_hook=None if spec is None else spec.summary)
+                   design=dict(design), T=sc.run.T, summary_hook=None if spec is None else spec.summary,
+                   reference=Reference.of(sc) if sc.kind == "flock" else None)
 
     def subscribe(self, bus) -> None:
         for pat in ("world/tick", "target/truth", "agent/*/estimate", "target/state", "agent/*/meas",
@@ -81,6 +89,8 @@ class MetricsCollector:
             self._truth[msg.k] = msg.x
         elif isinstance(msg, Estimate) and key.startswith("agent/"):
             self._est.setdefault(msg.k, {})[msg.src] = msg.x
+            if msg.P is not None and msg.P.shape == (msg.x.size, msg.x.size):
+                self._cov.setdefault(msg.k + 1, {})[msg.src] = msg.P     # (of x_next: the next tick's x̂)
             if msg.aux:
                 self._eps.setdefault(msg.k, {})[msg.src] = msg.aux
                 t, x = msg.aux.get("t_newest"), msg.aux.get("newest")
@@ -96,6 +106,7 @@ class MetricsCollector:
             if t is not None and tm is not None:
                 self._fusion.setdefault(msg.name, []).append((float(t[0]), float(tm[0]), msg.x, msg.x_next))
         elif isinstance(msg, Meas):
+            self._meas.setdefault(msg.k, {})[msg.src] = (msg.b, msg.y)
             if msg.v is not None:
                 self._v.setdefault(msg.k, {})[msg.src] = msg.v
             if self.T is not None and msg.y.shape == msg.pos.shape == (2,):
@@ -188,14 +199,26 @@ class MetricsCollector:
             s.update(self.summary_hook(self.design, self.run_trace()))
         if self._fusion:
             s["fusion"] = self.fusion_report()
+        s["credibility"] = self.credibility([r["k"] for r in scored])
         if extra:
             s.update(extra)
         return s
 
+    def credibility(self, scored: list[int]) -> dict:
+        """NEES/ANEES, COIN and the efficiency against the centralized reference
+        (flocktrack/record/credibility.py) over the ``scored`` ticks."""
+        from .credibility import report
+
+        central = None
+        if self.reference is not None and self._meas:
+            central = self.reference.run(self._meas, self.ticks)
+        return report(self._truth, self._est, self._cov, scored, central)
+
     def forget(self, upto: int) -> None:
         """Drop what is kept of the ticks up to ``upto`` (a live consumer done with them: the recorder's
         views keep a few ticks, not the run)."""
-        for d in (self._truth, self._est, self._ticks, self._target_pos, self._w, self._v, self._eps):
+        for d in (self._truth, self._est, self._ticks, self._target_pos, self._w, self._v, self._eps, self._cov,
+                  self._meas):
             for k in [k for k in d if k <= upto]:
                 del d[k]
         self._meas_pos.clear()

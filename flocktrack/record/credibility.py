@@ -1,0 +1,152 @@
+"""Whether an estimate's stated uncertainty is honest, and how far it is from the best any filter could do.
+
+Consistency (Bar-Shalom, Li & Kirubarajan, *Estimation with Applications to Tracking and Navigation*, §5.4):
+a node's estimation error eₖ = x̂ₖ − xₖ against the covariance Pₖ it reported for x̂ₖ (the ``P`` sent with
+the previous tick's update, the covariance of x̂ₖ₊₁ then) gives the normalised estimation error squared
+
+    NEESₖ = eₖ′ Pₖ⁻¹ eₖ,
+
+χ²-distributed with m degrees of freedom when the filter's P is its true error covariance. Over K ticks
+the average (ANEES) is consistent at 95 % when K·ANEES lies in the two-sided χ²(K·m) interval; below it the
+filter is *conservative* (P larger than its errors — what a minimax or H∞ bound is built to be), above it
+*optimistic*. The network's ANEES pools the nodes and ticks: the nodes of a consensus filter share their
+errors, so its interval (χ²(N·K·m)) is an approximation; a Monte-Carlo set of seeds gives independent
+samples (``flocktrack sweep --seeds``). The conservativeness index COIN = λ_max(P̄^{-1/2} Σ̂ P̄^{-1/2}) (Σ̂ the
+errors' second moment, P̄ the mean reported covariance) is ≤ 1 for a conservative node.
+
+Efficiency: a centralized Kalman predictor over every sensor's measurements (the scenario's true model,
+ideal links, :class:`agent.estimators.kalman.KalmanPredictor` with the tick's visibility weights bᵢ) gives,
+for a linear-Gaussian target, the posterior Cramér–Rao bound of one-step prediction, trace(P_centralₖ).
+``efficiency`` = MSE / mean trace(P_central) over the scored ticks (≥ 1 in expectation; 1 is the best any
+filter can do); one run's errors are few independent samples, so the ratio to the reference's own MSE on the
+same data (``network_vs_central_mse``) is given beside it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from agent.estimators.kalman import KalmanPredictor
+
+
+def chi2_interval(dof: int, samples: int, level: float = 0.95) -> tuple[float, float]:
+    """The two-sided ``level`` acceptance interval of an average of ``samples`` NEES values with ``dof``
+    degrees of freedom in all (``samples`` × m)."""
+    a = (1 - level) / 2
+    return float(chi2.ppf(a, dof) / samples), float(chi2.ppf(1 - a, dof) / samples)
+
+
+def consistency(errors: np.ndarray, covariances: np.ndarray) -> dict | None:
+    """ANEES, its χ² interval, the verdict and COIN of one set of errors (K × m) against the covariances
+    reported for them (K × m × m). None without a usable sample."""
+    keep = [j for j in range(len(errors))
+            if np.isfinite(errors[j]).all() and np.isfinite(covariances[j]).all()
+            and np.linalg.eigvalsh(0.5 * (covariances[j] + covariances[j].T)).min() > 0]
+    if not keep:
+        return None
+    E, P = errors[keep], covariances[keep]
+    K, m = E.shape
+    nees = np.einsum("ki,kij,kj->k", E, np.linalg.inv(P), E)
+    anees = float(nees.mean())
+    lo, hi = chi2_interval(K * m, K)
+    w, V = np.linalg.eigh(P.mean(axis=0))
+    root = V @ np.diag(w ** -0.5) @ V.T
+    coin = float(np.linalg.eigvalsh(root @ (E.T @ E / K) @ root).max())
+    verdict = "consistent" if lo <= anees <= hi else ("conservative" if anees < lo else "optimistic")
+    return {"anees": anees, "interval": [lo, hi], "consistent": verdict == "consistent", "verdict": verdict,
+            "coin": coin, "samples": K, "dof": m}
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The model of the centralized reference: x₊ = A x + w (Q), yᵢ = bᵢ Cᵢ x + vᵢ (Rᵢ), from x̂₀, P₀."""
+
+    A: np.ndarray
+    Q: np.ndarray
+    Cs: tuple[np.ndarray, ...]
+    Rs: tuple[np.ndarray, ...]
+    x0: np.ndarray
+    P0: np.ndarray
+
+    @classmethod
+    def of(cls, sc) -> "Reference | None":
+        """The scenario's true model (None for a scenario without one shared linear target model)."""
+        try:
+            n = sc.sensors.n
+            return cls(np.array(sc.A, float), sc.B @ sc.Qw @ sc.B.T, tuple(sc.C_of(i) for i in range(n)),
+                       tuple(sc.R_of(i) for i in range(n)), sc.initial_estimates().mean(axis=0),
+                       sc.initial_covariance())
+        except (AttributeError, TypeError, ValueError):
+            return None
+
+    def run(self, measurements: dict[int, dict[int, tuple[float, np.ndarray]]], ticks: int) -> dict[int, tuple]:
+        """(x̂ₖ, Pₖ) of the centralized predictor for every tick: the tick's prior, then the update with
+        every sensor's ``(b, y)`` of that tick."""
+        m = self.A.shape[0]
+        kf = KalmanPredictor(self.A, self.Q, np.zeros((0, m)), np.zeros((0, 0)), self.x0, self.P0)
+        out: dict[int, tuple] = {}
+        for k in range(ticks):
+            out[k] = (kf.x.copy(), kf.P.copy())
+            seen = measurements.get(k, {})
+            rows = [(i, b, y) for i, (b, y) in sorted(seen.items()) if b > 0 and np.isfinite(y).all()]
+            if not rows:
+                kf.x, kf.P = self.A @ kf.x, self.A @ kf.P @ self.A.T + self.Q
+                continue
+            kf.C = np.vstack([b * self.Cs[i] for i, b, _y in rows])
+            kf.R = _block_diag([self.Rs[i] for i, _b, _y in rows])
+            kf.step(np.concatenate([y for _i, _b, y in rows]))
+        return out
+
+
+def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    from scipy.linalg import block_diag
+
+    return block_diag(*blocks)
+
+
+def report(truth: dict[int, np.ndarray], est: dict[int, dict[int, np.ndarray]],
+           cov: dict[int, dict[int, np.ndarray]], scored: list[int], central: dict[int, tuple] | None) -> dict:
+    """The ``credibility`` section of summary.json: per node and for the network, the consistency of each
+    node's x̂ₖ against the covariance it reported for it (``cov[k][i]``: the P sent at tick k − 1), and the
+    efficiency against the centralized reference (``central``: :meth:`Reference.run`)."""
+    nodes = sorted({i for k in scored for i in est.get(k, {})})
+    per_node, pooled_e, pooled_P = {}, [], []
+    for i in nodes:
+        ks = [k for k in scored if i in est.get(k, {}) and i in cov.get(k, {}) and k in truth]
+        if not ks:
+            continue
+        E = np.array([est[k][i] - truth[k] for k in ks])
+        P = np.array([cov[k][i] for k in ks])
+        c = consistency(E, P)
+        if c is not None:
+            per_node[str(i)] = c
+            pooled_e.append(E)
+            pooled_P.append(P)
+    out: dict = {"nees": per_node}
+    if pooled_e:
+        E, P = np.concatenate(pooled_e), np.concatenate(pooled_P)
+        out["network"] = consistency(E, P)
+        out["consistent_nodes"] = sum(1 for c in per_node.values() if c["consistent"])
+    if central:
+        ks = [k for k in scored if k in central and k in truth]
+        bound = float(np.mean([np.trace(central[k][1]) for k in ks])) if ks else math.nan
+        ref_mse = float(np.mean([np.sum((central[k][0] - truth[k]) ** 2) for k in ks])) if ks else math.nan
+        eff, rel = {}, {}
+        for i in nodes:
+            errs = [np.sum((est[k][i] - truth[k]) ** 2) for k in ks if i in est.get(k, {})]
+            if errs and bound > 1e-12:
+                eff[str(i)] = float(np.mean(errs)) / bound
+            if errs and ref_mse > 1e-12:
+                rel[str(i)] = float(np.mean(errs)) / ref_mse
+        out["efficiency"] = {
+            "central_trace_P_mean": bound, "central_mse": ref_mse,
+            "central_mse_over_trace": ref_mse / bound if bound > 1e-12 else None,
+            "per_node": eff, "network": float(np.mean(list(eff.values()))) if eff else None,
+            # the same ratio against the reference's own errors on this run's data (one realisation's
+            # errors are strongly correlated in time: against the bound a single run is noisy)
+            "per_node_vs_central_mse": rel, "network_vs_central_mse": float(np.mean(list(rel.values()))) if rel else None}
+    return out
