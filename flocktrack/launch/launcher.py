@@ -98,6 +98,21 @@ def worth_showing(line: str, in_traceback: bool) -> tuple[bool, bool]:
 #: the lifecycle events of a child that the launcher also publishes (verb ``process`` on ``launcher/event``)
 PROCESS_EVENTS = frozenset({"exit", "spawn", "restart", "killed"})
 
+
+def publish_process(bus, k: int, what: str, name: str, kw: dict) -> None:
+    """A child's life on the record: ``launcher/event`` verb ``process`` (event exit / spawn / restart / killed,
+    the node, its exit code or rejoin), so a recording shows crashes and rejoins on its timeline."""
+    if bus is None:
+        return
+    from agent.wire import Control
+
+    args = {"event": what, "name": name, **{a: kw[a] for a in ("rc", "rejoin", "attempt") if a in kw}}
+    try:
+        bus.publish("launcher/event", Control(k=k, verb="process", args=args))
+    except Exception as exc:  # noqa: BLE001 — the bus closing under a late exit: the event stays in events.json
+        log.debug("process event %s %s not published: %s", what, name, exc)
+
+
 class Launcher:
     """Spawns and supervises the processes of one host of a :class:`~flocktrack.plan.RunPlan`."""
 
@@ -194,22 +209,9 @@ class Launcher:
     def _event(self, what: str, name: str, **kw) -> None:
         with self._lock:
             self.events.append({"t": time.time(), "event": what, "name": name, **kw})
-        if what in PROCESS_EVENTS:
-            self._publish_process(what, name, kw)
-
-    def _publish_process(self, what: str, name: str, kw: dict) -> None:
-        """A child's life on the record: ``launcher/event`` verb ``process`` (event exit / spawn / restart /
-        killed, the node, its exit code or rejoin), so a recording shows crashes and rejoins on its timeline."""
-        bus = self.ctl_bus
-        if bus is None or not self.ticking or (what == "exit" and kw.get("rc") == 0):
-            return       # (the start-up spawns are the plan, and a clean exit at the end is not news)
-        from agent.wire import Control
-
-        args = {"event": what, "name": name, **{a: kw[a] for a in ("rc", "rejoin", "attempt") if a in kw}}
-        try:
-            bus.publish("launcher/event", Control(k=self.tick_seen, verb="process", args=args))
-        except Exception as exc:  # noqa: BLE001 — the bus closing under a late exit: the event stays in events.json
-            log.debug("process event %s %s not published: %s", what, name, exc)
+        if what in PROCESS_EVENTS and self.ticking and not (what == "exit" and kw.get("rc") == 0):
+            publish_process(self.ctl_bus, self.tick_seen, what, name, kw)  # (start-up spawns are the plan; a clean
+                                                                            # exit at the end is not news)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
