@@ -157,7 +157,8 @@ class LinearSensor:
     """Measurement (3) with visibility weight b: y = b·C x + v, v ~ N(0, R).
 
     The noise v is drawn even when b = 0, so the random stream (and hence every later draw) does not
-    depend on visibility; a sensor with b = 0 returns pure noise (and its filter weights it by b).
+    depend on visibility; a sensor with b = 0 returns pure noise (and its filter weights it by b). The
+    drawn v is kept in :attr:`last_v`.
     """
 
     def __init__(self, C: np.ndarray, R: np.ndarray):
@@ -167,4 +168,5 @@ class LinearSensor:
 
     def measure(self, x: np.ndarray, b: float, rng: np.random.Generator) -> np.ndarray:
         v = self._L @ rng.standard_normal(self.C.shape[0])
+        self.last_v = v  # the noise drawn (recorded: the H∞ energy ratios need it)
         return float(b) * (self.C @ np.asarray(x, dtype=float)) + v

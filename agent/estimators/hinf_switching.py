@@ -20,7 +20,8 @@ graph, and handed to each sensor as its gain ``K``):
 * :func:`gamma_bound`        — Theorem 3.9's bound γ ≤ λ₁(W) − Θ with P̄ from (15).
 * :func:`tmsee_lower_bound`  — Theorem 3.5's recursion (12) for the TMSEE lower bound tr Z(k).
 
-Run-time: :class:`HinfSwitchingEstimator`, one node of (3) behind the :class:`Estimator` interface.
+Run-time: :class:`HinfSwitchingEstimator`, one node of (3) behind the :class:`Estimator` interface;
+after the run, :func:`energy_ratio` measures the H∞ performance (8) it was designed for.
 
 Findings about the paper that matter to a user (measured on its Section 4 example, R = 1,
 Q = 0.01 I, γ = 0.1, K = [0.9376, 0.5884]ᵀ; see tests/unit/test_hinf_switching.py):
@@ -52,7 +53,7 @@ import numpy as np
 import scipy.linalg
 
 from agent.estimators.base import Estimator, Payload, TickContext, valid_inbox
-from agent.estimators.spec import EstimatorSpec, GraphFacts
+from agent.estimators.spec import EstimatorSpec, GraphFacts, RunTrace
 from agent.schema import Matrix, ScenarioError, check_covariance
 from agent.seeding import rng_for
 from agent.estimators.consensus import disagreement
@@ -466,6 +467,10 @@ class HinfSwitchingEstimator(Estimator):
     def payload_shapes(self) -> dict[str, tuple[int, ...]]:
         return {"x": (self._m,)}
 
+    def report(self) -> dict[str, np.ndarray]:
+        """The neighbour-term noise wᵢ₂(k) of this tick (when there is one): part of w(k) in (7)–(8)."""
+        return {} if self._noise_factor is None else {"w2": self._w2.copy()}
+
     def _set_x(self, x: np.ndarray) -> None:
         self._x = self._vec(x, self._m, "x")
 
@@ -507,7 +512,10 @@ def _design(sc: Any, p: HinfParams, facts: GraphFacts) -> dict[str, Any]:
     H = list(facts.H_graphs) if facts.H_graphs is not None else [np.eye(1) * float(p.lambda0)]
     Rd = np.eye(sc.C.shape[0]) if p.R_design is None else np.array(p.R_design, float)
     Qd = sc.filter_Q() if p.Q_design is None else np.array(p.Q_design, float)
-    out: dict[str, Any] = {"K": np.asarray(constant_gain(sc.A, sc.C, Qd, Rd, p.gamma, H), float).tolist()}
+    out: dict[str, Any] = {"K": np.asarray(constant_gain(sc.A, sc.C, Qd, Rd, p.gamma, H), float).tolist(),
+                           # for the run's energy ratio (8): P of ARE (9), γ, and how w enters x(k+1) − A x(k)
+                           "P": riccati(sc.A, sc.C, Qd, Rd, p.gamma).tolist(), "gamma": float(p.gamma),
+                           "B": np.asarray(sc.B, float).tolist()}
     if facts.H_per_tick is None:
         return out
     n, m = sc.sensors.n, sc.m
@@ -531,5 +539,37 @@ def _build(sc: Any, i: int, p: HinfParams, design: Mapping[str, Any]) -> HinfSwi
                                   resilient_f=sc.estimator.resilient_f)
 
 
+def energy_ratio(design: Mapping[str, Any], trace: RunTrace | None) -> dict[str, Any]:
+    """``"hinf"``: the run's H∞ performance (8), ‖η‖²₂ ≤ (1/γ)(‖w‖²₂ + η(0)ᵀRη(0)), measured.
+
+    ‖η‖²₂ = Σₖ Σᵢ ‖ηᵢ(k)‖² over the ticks 0…K; ‖w‖²₂ = Σₖ (‖B w₀(k)‖² + Σᵢ ‖wᵢ₁(k)‖² + ‖wᵢ₂(k)‖²), the
+    target's disturbance, every sensor's measurement noise and neighbour-term noise as drawn in the run. For
+    the initial term, R is the least weighting Theorem 3.3's initial condition ηᵢ(0)ᵀP⁻¹ηᵢ(0) ≤
+    (1/γ)ηᵢ(0)ᵀRηᵢ(0) admits: η(0)ᵀRη(0) = γ Σᵢ ηᵢ(0)ᵀP⁻¹ηᵢ(0). ``network_ratio`` ≤ ``bound`` = 1/γ is what
+    the theorem promises; ``node_ratio`` (Σₖ‖ηᵢ‖² over the target's and node i's own disturbances and its
+    initial term) is given beside it and is not covered by the theorem."""
+    if trace is None or len(trace.errors) < 2 or "P" not in design:
+        return {"hinf": None}
+    E = trace.errors
+    K, n = len(E) - 1, E.shape[1]
+    gamma, Pinv = float(design["gamma"]), np.linalg.inv(np.array(design["P"], float))
+    w0 = trace.w @ np.array(design["B"], float).T if trace.w.size else np.zeros((K, 0))
+    target = float(np.sum(w0 ** 2))
+    own = []
+    for i in range(n):
+        w2 = [trace.extra(k, i, "w2") for k in range(K)]
+        own.append(float(np.sum(np.square(trace.v[i]))) + sum(float(np.sum(np.square(w))) for w in w2 if w is not None))
+    start = [gamma * float(E[0, i] @ Pinv @ E[0, i]) for i in range(n)]
+    lhs = [float(np.sum(E[:, i] ** 2)) for i in range(n)]
+    rhs = target + sum(own) + sum(start)
+    return {"hinf": {"gamma": gamma, "bound": 1.0 / gamma if gamma > 0 else None,
+                     "network_ratio": sum(lhs) / rhs if rhs > 0 else None,
+                     "holds": bool(gamma > 0 and rhs > 0 and sum(lhs) / rhs <= 1.0 / gamma),
+                     "error_energy": sum(lhs), "disturbance_energy": target + sum(own), "initial_term": sum(start),
+                     "node_ratio": [lhs[i] / (target + own[i] + start[i]) if target + own[i] + start[i] > 0
+                                    else None for i in range(n)]}}
+
+
 SPEC = EstimatorSpec(name="hinf_switching", params=HinfParams, check=_check, design=_design, build=_build,
+                     summary=energy_ratio,
                      doc="Chen et al.'s H∞ consensus estimator (3) under switching topologies")

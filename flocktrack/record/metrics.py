@@ -212,7 +212,7 @@ class MetricsCollector:
         central = None
         if self.reference is not None and self._meas:
             central = self.reference.run(self._meas, self.ticks)
-        return report(self._truth, self._est, self._cov, scored, central)
+        return report(self._truth, self._est, self._cov, scored, central, meas=self._meas, ref=self.reference)
 
     def forget(self, upto: int) -> None:
         """Drop what is kept of the ticks up to ``upto`` (a live consumer done with them: the recorder's
