@@ -4,7 +4,8 @@ The main job needs none of them. ``pip install 'flocktrack[design]'`` brings cvx
 SDP design of the min-energy H∞ filters, the sum-of-norms reference solver), ``flocktrack[figures]``
 matplotlib (the sweeps' PNGs, the dashboard's static picture), ``flocktrack[fusion]`` numba (the
 compiled kernels of the sum-of-norms fusion: the ``carrillo_*`` scenarios), ``flocktrack[analysis]`` pandas
-and pyarrow (a run as tables: ``flocktrack.load``, ``flocktrack export``), ``flocktrack[all]`` all four.
+and pyarrow (a run as tables: ``flocktrack.load``, ``flocktrack export``), ``flocktrack[dask]`` distributed
+(sweeps on a Dask cluster: ``flocktrack sweep --executor dask``), ``flocktrack[all]`` all five.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from types import ModuleType
 
 #: top-level module → the extra that installs it
 EXTRA_OF = {"cvxpy": "design", "clarabel": "design", "scs": "design", "matplotlib": "figures", "numba": "fusion",
-            "llvmlite": "fusion", "pandas": "analysis", "pyarrow": "analysis"}
+            "llvmlite": "fusion", "pandas": "analysis", "pyarrow": "analysis",
+            "distributed": "dask", "dask": "dask"}
 
 
 def install_line(extra: str) -> str:

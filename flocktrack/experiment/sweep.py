@@ -2,6 +2,8 @@
 
     flocktrack sweep SCENARIO --grid KEY=V1,V2,... [--grid ...] [--seeds S] [--set KEY=V ...]
                               [--ticks N] [--jobs J] [--no-resume] [--no-figures] --out DIR
+                              [--transport inproc|zenoh] [--executor local|dask [--scheduler ADDRESS]
+                               [--retries N] [--worker-dir DIR] [--fetch-recordings]]
 
 * ``--grid KEY=V1,V2,…`` (repeatable): ``KEY`` is a dotted scenario key ``section.key`` (or a shorthand:
   ``estimator`` → ``estimator.name``, ``rounds`` → ``estimator.rounds``, ``range`` → ``topology.range``,
@@ -9,8 +11,11 @@
   strings — bare words are strings —, booleans, arrays: ``--grid 'sensors.origin=[0,0],[5,5]'``). ``seed``
   is reserved: ``--seeds S`` runs seeds 0 … S−1 (``run.seed``) for every cell of the Cartesian product.
 * Every run is the in-process engine (:func:`flocktrack.engine.run.run_inproc_to_dir`, the same numbers as a
-  lockstep run over Zenoh) in ``DIR/runs/<run_id>/``, on a ``ProcessPoolExecutor`` of ``--jobs`` workers
-  (default ``os.cpu_count()``); a rich progress bar on a terminal, plain lines otherwise.
+  lockstep run over Zenoh) or, with ``--transport zenoh``, that lockstep run over Zenoh
+  (:mod:`flocktrack.experiment.runs`), in ``DIR/runs/<run_id>/``. ``--executor local`` (the default) runs
+  them on a ``ProcessPoolExecutor`` of ``--jobs`` workers (default ``os.cpu_count()``), ``--executor dask``
+  on a Dask cluster (:mod:`flocktrack.experiment.dask_executor`); a rich progress bar on a terminal, plain
+  lines otherwise.
 * Every cell is validated before anything runs. A grid key the scenario schema does not know (or a
   ``--set`` that breaks every cell) stops the sweep at once with the scenario's error; a cell whose
   *value* is invalid, or a run that raises, is reported and recorded as failed, and the sweep goes on.
@@ -27,15 +32,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
-import shutil
 import signal
 import sys
 import time
-import traceback
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -47,6 +47,7 @@ from agent.scenario import ScenarioError, parse_scenario
 
 from flocktrack.resources import add_scenario_argument
 
+from .executors import Executor, ExecutorError, PoolExecutor
 from .grid import SHORTHANDS, Axis, RunSpec, expand, parse_grid
 from .results import collect_rows, make_figures, write_results_csv, write_summary_csv
 
@@ -65,13 +66,21 @@ class SweepConfig:
     resume: bool = True
     figures: bool = True
     progress: bool = True  #: show a progress bar / progress lines on stderr
+    transport: str = "inproc"   #: inproc, or zenoh (the lockstep run over Zenoh)
+    executor: str = "local"     #: local (a process pool) or dask
+    scheduler: str | None = None  #: dask: an existing cluster's scheduler (default: start a LocalCluster)
+    retries: int = 2            #: dask: tries of a run beyond its first
+    scheduler_timeout: float = 10.0
+    worker_dir: str | None = None  #: dask: where workers keep recordings (default: their temp dir)
+    fetch_recordings: bool = False  #: dask: ship recordings back into runs/<id>/
 
 
 def run_data(cfg: SweepConfig, spec: RunSpec) -> dict:
     """The run's TOML mapping: the scenario, ``--set``, ``--ticks``, then the cell and the seed."""
     from agent.scenario import scenario_data
 
-    named = {"run.ticks": cfg.ticks, "run.seed": spec.seed}
+    named = {"run.ticks": cfg.ticks, "run.seed": spec.seed,
+             "run.mode": "lockstep" if cfg.transport == "zenoh" else None}
     named.update({a.key: v for a, v in zip(cfg.axes, spec.cell)})
     return scenario_data(cfg.scenario, cfg.sets, **named)
 
@@ -124,34 +133,12 @@ def plan(cfg: SweepConfig) -> tuple[list[RunSpec], dict[int, str]]:
 
 # ============================================================================ running
 
-def _execute(task: dict) -> dict:
-    """One run (in a worker process): parse, run in-process to a temporary directory, rename."""
-    from flocktrack.engine.run import run_inproc_to_dir
-
-    final = Path(task["dir"])
-    tmp = final.parent / f".{final.name}.tmp"
-    t0 = time.perf_counter()
-    try:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        sc = parse_scenario(task["data"], task["source"])
-        _, info = run_inproc_to_dir(sc, task["data"], tmp)
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-        return {"run_id": task["run_id"], "status": "ok", "wall_s": info["wall_s"]}
-    except Exception as exc:  # a failing cell must not abort the sweep
-        shutil.rmtree(tmp, ignore_errors=True)
-        msg = str(exc) if isinstance(exc, ScenarioError) else f"{type(exc).__name__}: {exc}"
-        return {"run_id": task["run_id"], "status": "failed", "error": msg, "wall_s": time.perf_counter() - t0,
-                "traceback": traceback.format_exc(limit=6)}
-
-
 class SweepProgress:
     """A rich progress bar on a terminal, one plain line per finished run otherwise; failures always shown."""
 
-    def __init__(self, total: int, enabled: bool = True):
+    def __init__(self, total: int, enabled: bool = True, slots: int = 1):
         self.total, self.done, self.failed = total, 0, 0
+        self.slots = slots  #: runs at once: "running" is the lesser of it and what is left
         self.enabled = enabled
         self._bar = None
         if enabled and sys.stderr.isatty():
@@ -160,9 +147,10 @@ class SweepProgress:
                                        TimeRemainingColumn)
 
             self._bar = Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(),
-                                 TextColumn("{task.fields[failed]}"), TimeElapsedColumn(), TimeRemainingColumn(),
-                                 console=Console(stderr=True), transient=False)
-            self._task = self._bar.add_task("sweep", total=total, failed="")
+                                 TextColumn("{task.fields[failed]}"), TextColumn("{task.fields[running]}"),
+                                 TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True),
+                                 transient=False)
+            self._task = self._bar.add_task("sweep", total=total, failed="", running="")
             self._bar.start()
 
     def note(self, text: str) -> None:
@@ -179,7 +167,8 @@ class SweepProgress:
         ok = res["status"] == "ok"
         self.failed += not ok
         if self._bar is not None:
-            self._bar.update(self._task, completed=self.done,
+            running = min(self.slots, self.total - self.done)
+            self._bar.update(self._task, completed=self.done, running=f"{running} running" if running else "",
                              failed=f"[red]{self.failed} failed" if self.failed else "")
             if not ok and not quiet_ok:
                 self.note(f"FAILED {res['run_id']}: {res.get('error')}")
@@ -192,13 +181,14 @@ class SweepProgress:
             self._bar.stop()
 
 
-def _is_done(run_dir: Path, data: dict) -> str:
-    """'' (not done), 'done', or 'stale' (finished with a different resolved scenario)."""
+def _is_done(run_dir: Path, data: dict, transport: str) -> str:
+    """'' (not done), 'done', or 'stale' (finished with a different resolved scenario or transport)."""
     if not (run_dir / "summary.json").exists():
         return ""
     try:
-        same = (run_dir / "scenario.toml").read_text() == tomli_w.dumps(data)
-    except OSError:
+        same = ((run_dir / "scenario.toml").read_text() == tomli_w.dumps(data)
+                and json.loads((run_dir / "run.json").read_text()).get("transport", "inproc") == transport)
+    except (OSError, ValueError):
         same = False
     return "done" if same else "stale"
 
@@ -215,14 +205,15 @@ def _triage(cfg: SweepConfig, specs: list, cell_errors: dict, runs_dir: Path) ->
                                  "wall_s": 0.0}
             continue
         data = run_data(cfg, r)
-        state = _is_done(runs_dir / r.run_id, data) if cfg.resume else ""
+        state = _is_done(runs_dir / r.run_id, data, cfg.transport) if cfg.resume else ""
         if state == "done":
             skipped += 1
             results[r.run_id] = {"run_id": r.run_id, "status": "ok", "wall_s": _old_wall(runs_dir / r.run_id),
                                  "resumed": True}
             continue
         stale += state == "stale"
-        tasks.append({"run_id": r.run_id, "dir": str(runs_dir / r.run_id), "data": data, "source": cfg.scenario})
+        tasks.append({"run_id": r.run_id, "dir": str(runs_dir / r.run_id), "data": data, "source": cfg.scenario,
+                      "transport": cfg.transport})
     return results, tasks, skipped, stale
 
 
@@ -240,26 +231,29 @@ def run_sweep(cfg: SweepConfig) -> dict:
     jobs = max(1, cfg.jobs or os.cpu_count() or 1)
 
     results, tasks, skipped, stale = _triage(cfg, specs, cell_errors, runs_dir)
-    prog = SweepProgress(len(specs), cfg.progress)
+    executor = make_executor(cfg, jobs) if tasks else PoolExecutor(jobs)  # (no cluster for nothing to run)
+    prog = SweepProgress(len(specs), cfg.progress, slots=executor.slots)
     n_cells = len({r.cell_index for r in specs})
     prog.note(f"sweep {cfg.scenario}: {n_cells} cells × {len(cfg.seeds)} seeds = {len(specs)} runs, "
-              f"{len(tasks)} to run on {min(jobs, max(len(tasks), 1))} processes"
+              f"{len(tasks)} to run on {executor.describe(len(tasks))}"
               + (f", {skipped} already done" if skipped else "") + (f", {stale} stale (re-run)" if stale else "")
               + (f", {len(cell_errors)} invalid cells" if cell_errors else ""))
+    if executor.dashboard:
+        prog.note(f"Dask dashboard: {executor.dashboard}")
     for ci, err in sorted(cell_errors.items()):
         prog.note(f"invalid cell {ci}: {err}")
     for rid in results:  # already done (resumed) or invalid before running
         prog.advance(results[rid], quiet_ok=True)
+
+    def on_result(res: dict) -> None:
+        results[res["run_id"]] = res
+        prog.advance(res)
+
     try:
-        if jobs == 1 or len(tasks) <= 1:
-            for task in tasks:
-                res = _execute(task)
-                results[res["run_id"]] = res
-                prog.advance(res)
-        else:
-            _run_pool(tasks, jobs, results, prog)
+        executor.run(tasks, on_result)
     finally:
         prog.close()
+        executor.close()
 
     wall = time.perf_counter() - t0
     rows = collect_rows(cfg.axes, specs, runs_dir, results)
@@ -275,7 +269,7 @@ def run_sweep(cfg: SweepConfig) -> dict:
             prog.note(f"figures failed: {fig_error}")
     meta = _sweep_meta(cfg, specs, results, jobs=jobs, skipped=skipped, stale=stale, executed=len(tasks),
                        started=started, wall=wall)
-    meta.update(figures=figures, figures_error=fig_error)
+    meta.update(figures=figures, figures_error=fig_error, executor=executor.info() | {"kind": cfg.executor})
     (out / "sweep.json").write_text(json.dumps(meta, indent=2, default=_json_default) + "\n")
     return meta
 
@@ -306,64 +300,24 @@ def _sweep_meta(cfg: SweepConfig, specs: list, results: dict, *, jobs: int, skip
         "run_wall_s_total": sum(float(results[r.run_id].get("wall_s") or 0.0) for r in specs),
         "run_wall_s": {r.run_id: results[r.run_id].get("wall_s") for r in specs},
         "failures": failures,
+        "transport": cfg.transport,
+        "hosts": {r.run_id: results[r.run_id]["host"] for r in specs if results[r.run_id].get("host")},
+        "recordings": {r.run_id: results[r.run_id]["recording"] for r in specs if results[r.run_id].get("recording")},
         "figures": [],
         "figures_error": None,
         "outputs": {"results": "results.csv", "summary": "summary.csv", "runs": "runs/", "figures": "figures/"},
     }
 
 
-def _worker_init() -> None:
-    # Ctrl-C goes to the whole process group; the parent alone decides (it terminates the workers), so a
-    # worker neither dies half-way through writing nor swallows the interrupt and takes the next run
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+def make_executor(cfg: SweepConfig, jobs: int) -> Executor:
+    """The executor ``cfg`` asks for: the local pool of ``jobs`` processes, or a Dask cluster."""
+    if cfg.executor == "local":
+        return PoolExecutor(jobs)
+    from .dask_executor import DaskExecutor
 
-
-def _stop_pool(pool: ProcessPoolExecutor) -> None:
-    """Cancel what has not started and terminate the workers (ours) of a pool, without waiting for runs."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
-    for proc in procs:
-        if proc.is_alive():
-            proc.terminate()
-    for proc in procs:
-        proc.join(timeout=5)
-
-
-def _run_pool(tasks: list[dict], jobs: int, results: dict, prog: SweepProgress) -> None:
-    pending = list(tasks)
-    while pending:  # a worker killed by the OS breaks the pool: record its runs, start a new pool for the rest
-        # spawn, not fork: the parent may run rich's refresh thread, and forking a threaded process can
-        # leave a lock held in the child
-        pool = ProcessPoolExecutor(max_workers=min(jobs, len(pending)), mp_context=mp.get_context("spawn"),
-                                   initializer=_worker_init)
-        try:
-            futs = {pool.submit(_execute, t): t for t in pending}
-            pending = []
-            broken = False
-            not_done = set(futs)
-            while not_done:
-                done, not_done = wait(not_done, return_when=FIRST_COMPLETED)
-                for f in done:
-                    t = futs[f]
-                    try:
-                        res = f.result()
-                    except BrokenProcessPool:
-                        if not broken:
-                            broken = True
-                            res = {"run_id": t["run_id"], "status": "failed", "wall_s": 0.0,
-                                   "error": "a worker process died (killed, out of memory) during this or a concurrent run"}
-                        else:
-                            pending.append(t)
-                            continue
-                    except Exception as exc:
-                        res = {"run_id": t["run_id"], "status": "failed", "wall_s": 0.0,
-                               "error": f"{type(exc).__name__}: {exc}"}
-                    results[res["run_id"]] = res
-                    prog.advance(res)
-        except BaseException:  # Ctrl-C / SIGTERM: stop now; finished runs are kept, the rest resumes next time
-            _stop_pool(pool)
-            raise
-        pool.shutdown(wait=True)
+    return DaskExecutor(scheduler=cfg.scheduler, jobs=jobs, sweep=Path(cfg.out).resolve().name, retries=cfg.retries,
+                        timeout=cfg.scheduler_timeout, worker_dir=cfg.worker_dir,
+                        fetch_recordings=cfg.fetch_recordings)
 
 
 def _old_wall(run_dir: Path) -> float | None:
@@ -404,7 +358,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override a scenario key for every run")
     p.add_argument("--ticks", type=int, help="override run.ticks for every run")
-    p.add_argument("--jobs", type=int, help="worker processes (default: os.cpu_count())")
+    p.add_argument("--jobs", type=int, help="worker processes (default: os.cpu_count()); with --executor dask and "
+                                             "no --scheduler, the local cluster's workers")
+    p.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
+                   help="inproc (default): the in-process engine; zenoh: the lockstep run over Zenoh")
+    p.add_argument("--executor", choices=["local", "dask"], default="local",
+                   help="local (default): a process pool on this machine; dask: a Dask cluster")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="dask: a cluster's scheduler (default: a local one)")
+    p.add_argument("--scheduler-timeout", type=float, default=10.0, metavar="S",
+                   help="dask: how long to wait for the scheduler and a worker (default 10 s)")
+    p.add_argument("--retries", type=int, default=2, metavar="N",
+                   help="dask: tries of a failed run (or of one whose worker died) beyond its first (default 2)")
+    p.add_argument("--worker-dir", metavar="DIR", help="dask: where workers keep recordings (default: their tmp)")
+    p.add_argument("--fetch-recordings", action="store_true",
+                   help="dask: ship every recording back into runs/<id>/ instead of leaving it on its worker")
     p.add_argument("--no-resume", action="store_true", help="recompute runs that are already done")
     p.add_argument("--no-figures", action="store_true", help="skip DIR/figures/")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -414,7 +381,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> SweepConfig:
     return SweepConfig(scenario=args.scenario, axes=[parse_grid(g) for g in args.grid], seeds=args.seeds,
                        out=Path(args.out), sets=list(args.set or []), ticks=args.ticks, jobs=args.jobs,
-                       resume=not args.no_resume, figures=not args.no_figures, progress=not args.quiet)
+                       resume=not args.no_resume, figures=not args.no_figures, progress=not args.quiet,
+                       transport=args.transport, executor=args.executor, scheduler=args.scheduler,
+                       retries=args.retries, scheduler_timeout=args.scheduler_timeout, worker_dir=args.worker_dir,
+                       fetch_recordings=args.fetch_recordings)
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -425,6 +395,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         print(f"error: the sweep's figures need matplotlib: {install_line('figures')} (or give --no-figures)",
               file=sys.stderr)
         return 2
+    if args.executor == "dask" and not has("distributed"):
+        print(f"error: --executor dask needs distributed: {install_line('dask')}", file=sys.stderr)
+        return 2
     cfg = config_from_args(args)
 
     def on_term(_signum, _frame):
@@ -433,6 +406,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     old_term = signal.signal(signal.SIGTERM, on_term)  # SIGTERM stops the workers too, like Ctrl-C
     try:
         meta = run_sweep(cfg)
+    except ExecutorError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"\nsweep interrupted; finished runs are kept in {cfg.out}/runs/ — run the same command again to "
               f"resume", file=sys.stderr)

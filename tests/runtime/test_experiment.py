@@ -16,6 +16,7 @@ from agent.scenario import ScenarioError
 from dashboards import sweep_plots as sp
 from flocktrack.experiment import grid as gr
 from flocktrack.experiment import results
+from flocktrack.experiment import runs as rn
 from flocktrack.experiment import sweep as sw
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -242,7 +243,7 @@ def test_bad_value_in_one_cell_is_recorded_not_fatal(tmp_path, capsys):
 
 
 def test_worker_error_is_returned_not_raised(tmp_path):
-    res = sw._execute({"run_id": "x", "dir": str(tmp_path / "x"), "data": {"run": {}}, "source": "s.toml"})
+    res = rn.execute_run({"run_id": "x", "dir": str(tmp_path / "x"), "data": {"run": {}}, "source": "s.toml"})
     assert res["status"] == "failed" and "table is required" in res["error"]
     assert not (tmp_path / "x").exists() and not (tmp_path / ".x.tmp").exists()
 
