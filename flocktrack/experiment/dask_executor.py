@@ -204,4 +204,4 @@ def _local_cluster(distributed, jobs: int, retries: int):
         try:
             return distributed.LocalCluster(dashboard_address=":0", **kw)
         except OSError:
-            return distributed.LocalCluster(dashboard_address=None, dashboard=False, **kw)
+            return distributed.LocalCluster(dashboard_address=None, **kw)
