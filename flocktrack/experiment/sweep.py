@@ -150,7 +150,8 @@ class SweepProgress:
                                  TextColumn("{task.fields[failed]}"), TextColumn("{task.fields[running]}"),
                                  TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True),
                                  transient=False)
-            self._task = self._bar.add_task("sweep", total=total, failed="", running="")
+            self._task = self._bar.add_task("sweep", total=total, failed="",
+                                            running=f"{min(slots, total)} running" if total else "")
             self._bar.start()
 
     def note(self, text: str) -> None:
