@@ -89,15 +89,21 @@ def deliver(stats: BusStats, handlers: list[Handler], key: str, data: bytes,
         except wire.WireError as exc:
             stats.dropped[exc.reason] += 1
             log.debug("dropped message on %s: %s", key, exc)
+            if exc.header is not None:   # an unusable exchange payload: its round hears that it came
+                _call(stats, handlers, key, exc.header)
             return None
     stats.received += 1
+    _call(stats, handlers, key, msg)
+    return msg
+
+
+def _call(stats: BusStats, handlers: list[Handler], key: str, msg: wire.Message) -> None:
     for h in handlers:
         try:
             h(key, msg)
         except Exception:  # a role bug must not take the bus down; it is counted and logged
             stats.handler_errors += 1
             log.exception("handler failed on %s", key)
-    return msg
 
 
 class LocalBus:

@@ -140,6 +140,14 @@ class WaitBudget:
     warmup_s: float | None = None
     window_s: float | None = None
 
+    @classmethod
+    def lockstep(cls, deadline_s: float, *, rounds: int, depth: int) -> WaitBudget:
+        """A lockstep wait: ``deadline_s``, and an outer one (:attr:`Role.wait_depth` ≥ 1) outlasts the waits
+        inside it — a sensor's ``rounds`` rounds and its rejoin, then the target's wait — so a world whose
+        sensors wait out a round for a stopped neighbour closes its tick on their states, not ahead of them
+        (the in-process engine fires its deadlines innermost first, for the same reason)."""
+        return cls(deadline_s if depth <= 0 else deadline_s * (rounds + 1 + depth))
+
     def due(self, key: tuple, began: float, step_began: float, anchor: float | None = None) -> float:
         """When wait ``key`` times out: begun at ``began``, its step's first wait at ``step_began``, the role
         told of the step at ``anchor`` (None: it does not say)."""

@@ -61,7 +61,9 @@ class RunCfg:
     T: float = 0.1
     seed: int = 0
     mode: Literal["lockstep", "realtime"] = "lockstep"
-    deadline_s: float = 5.0  #: per-wait deadline (lockstep: only guards against dead processes)
+    #: per-wait deadline (lockstep: only guards against dead processes; a sensor's round waits this long, the
+    #: target's and the world's waits, which enclose the rounds, (R + 2) and (R + 3) times it)
+    deadline_s: float = 5.0
     burn_in: int = 0         #: ticks excluded from the RMSE summaries
     speed: float = 1.0       #: realtime factor: a tick lasts T / speed seconds of wall-clock time
 

@@ -56,12 +56,15 @@ MAX_PAYLOAD_ENTRIES = 32         #: entries of an exchange payload
 
 
 class WireError(ValueError):
-    """A message that must be dropped. ``reason`` is a stable label used as a counter name."""
+    """A message that must be dropped. ``reason`` is a stable label used as a counter name. ``header``: what
+    may still be said of it — for an exchange payload whose arrays are unusable, an :class:`UnusableXchg`
+    (its sender, tick and round, no arrays), so that its round need not wait for a payload that has come."""
 
     def __init__(self, reason: str, detail: str = ""):
         super().__init__(f"{reason}: {detail}" if detail else reason)
         self.reason = reason
         self.detail = detail
+        self.header: Message | None = None
 
 
 # --------------------------------------------------------------------------- arrays
@@ -331,6 +334,39 @@ class Xchg(Message):
         for key, v in p.items():
             out[_str(key, "payload key", 64)] = _dec_array(v)
         return dict(r=_int(d.get("r"), "r", 0, 1000), payload=out)
+
+    @classmethod
+    def from_wire(cls, d: dict) -> Message:
+        try:
+            return super().from_wire(d)
+        except WireError as exc:
+            if exc.reason in _UNUSABLE_ARRAY:
+                exc.header = UnusableXchg.of(d, exc.reason)
+            raise
+
+
+#: an array's faults that leave the rest of an exchange payload readable (its header names the round it missed)
+_UNUSABLE_ARRAY = frozenset({"non_finite", "bad_shape", "bad_array", "too_large"})
+
+
+@dataclass
+class UnusableXchg(Xchg):
+    """The header of an exchange payload whose arrays did not validate (NaN, inf, a bad shape): the bus
+    drops and counts the payload like any bad message, but hands its receiver this — sender, tick, round, no
+    arrays — so the round counts it as come and of no use (a lost link) instead of waiting out its deadline
+    for it. Without it a Byzantine sensor sending NaN makes every neighbour's every round end by deadline.
+    Made by :func:`decode` only, never encoded."""
+
+    reason: str = ""
+
+    @classmethod
+    def of(cls, d: dict, reason: str) -> UnusableXchg | None:
+        """The header of the exchange payload ``d``, or None when the header itself is malformed."""
+        try:
+            return cls(src=_int(d.get("src"), "src", 0, MAX_LIST_LEN), k=_int(d.get("k"), "k", 0),
+                       r=_int(d.get("r"), "r", 0, 1000), reason=reason)
+        except WireError:
+            return None
 
 
 @dataclass
@@ -765,7 +801,9 @@ def decode(key: str, data: bytes) -> Message:
         raise WireError("wrong_type", f"{d.get('type')!r} on {key}")
     try:
         msg = cls.from_wire(d)
-    except WireError:
+    except WireError as exc:
+        if exc.header is not None and owner is not None and exc.header.src != owner:
+            exc.header = None       # (a header that lies about its sender says nothing)
         raise
     except Exception as exc:  # any other surprise in hostile input is still a drop, never a crash
         raise WireError("bad_field", f"{type(exc).__name__}: {exc}") from None

@@ -11,7 +11,7 @@ import logging
 import sys
 
 from agent.bus import ZenohBus
-from agent.runner import StopFlag, drive, lean_zenoh_runtime, profiled
+from agent.runner import StopFlag, WaitBudget, drive, lean_zenoh_runtime, profiled
 from agent.scenario import ScenarioError, load_scenario
 
 from .world import build_world
@@ -40,7 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     stop = StopFlag().install()
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)
     try:
-        deadline = sc.run.deadline_s if mode == "lockstep" else 10 * sc.run.T / sc.run.speed
+        deadline = (WaitBudget.lockstep(sc.run.deadline_s, rounds=sc.estimator.rounds, depth=world.wait_depth)
+                    if mode == "lockstep" else 10 * sc.run.T / sc.run.speed)
         rc = profiled("world/0", lambda: drive(world, bus, "world/0", deadline, stop, expect=expect,
                                                startup_timeout_s=args.startup_timeout))
         logging.getLogger("world").info("done: %s", world.stats)

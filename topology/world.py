@@ -75,6 +75,7 @@ WORLD_VERBS = frozenset({"pause", "resume", "step", "speed", "link_drop", "link_
 
 class WorldRole(Role):
     name = "world"
+    wait_depth = 2
     #: the clock and the link table, the fault plan's events, the end; what it reads: the states that close a
     #: tick, the control plane and the launcher's acknowledgements of process faults
     PORTS = Ports(writes=("world/tick", "world/event", "world/end"),

@@ -59,6 +59,13 @@ class Role:
     def on_deadline(self) -> None:
         """The wait for the current step timed out: go on with what has arrived."""
 
+    #: how many other roles' waits this role's wait encloses: 0 for a sensor's exchange round, 1 for the
+    #: intelligent target's wait for the sensors' estimates, 2 for the world's wait for every state. An outer
+    #: wait may give up only after the waits inside it could have ended — a world that closed its tick while
+    #: the sensors still waited out a round would run ahead of the whole flock (flocktrack/engine/inproc.py
+    #: fires deadlines innermost first)
+    wait_depth: int = 0
+
     @property
     def wait_key(self) -> tuple | None:
         """Identifies the current wait (e.g. (k, r)); a driver fires :meth:`on_deadline` when the same

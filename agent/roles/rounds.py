@@ -1,7 +1,9 @@
 """A sensor's inbox of exchange payloads, by (tick, round): what arrived early is kept for its round, what
 comes too late or from a sensor that is not a neighbour this tick is dropped and counted, and a round is
 complete once every current neighbour's payload is in — or held back by the link emulator for a later
-tick (agent/link_emulation.py), which the round need not wait for.
+tick (agent/link_emulation.py), which the round need not wait for. A payload that came unusable (its arrays
+dropped by the bus: :class:`agent.wire.UnusableXchg`) is put as ``None``: it completes the round and is a lost
+link when the round closes (``unusable_payloads``).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ class RoundInbox:
             return True
         return False
 
-    def put(self, j: int, k: int, r: int, payload: dict[str, np.ndarray]) -> None:
+    def put(self, j: int, k: int, r: int, payload: dict[str, np.ndarray] | None) -> None:
         self._buf.setdefault((k, r), {})[j] = payload
 
     def complete(self, k: int, r: int, neighbours: Collection[int], held: Collection[int]) -> bool:
@@ -47,7 +49,10 @@ class RoundInbox:
     def take(self, k: int, r: int, neighbours: Collection[int]) -> dict[int, dict[str, np.ndarray]]:
         """The neighbours' payloads of (k, r) (the round closes: a missing one is a dropped link, counted)."""
         got = self._buf.pop((k, r), {})
-        heard = {j: got[j] for j in neighbours if j in got}
+        heard = {j: got[j] for j in neighbours if got.get(j) is not None}
+        unusable = sum(1 for j in neighbours if j in got and got[j] is None)
+        if unusable:
+            self.counters["unusable_payloads"] += unusable
         self.counters["dropped_links"] += len(neighbours) - len(heard)
         return heard
 

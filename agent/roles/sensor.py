@@ -30,8 +30,8 @@ from ..estimators.base import Estimator, TickContext
 from ..link_emulation import LinkEmulator, noise_factor
 from ..models import LinearSensor, integrate_double_integrator
 from ..ports import Ports
-from ..wire import (Control, Estimate, FaultEvent, Meas, Message, State, Tick, Truth, WireError, Xchg, command,
-                    estimate_inbox, estimate_key, inbox, xchg_key)
+from ..wire import (Control, Estimate, FaultEvent, Meas, Message, State, Tick, Truth, UnusableXchg, WireError,
+                    Xchg, command, estimate_inbox, estimate_key, inbox, xchg_key)
 from .common import Role
 from .rejoin import Rejoin
 from .rounds import RoundInbox
@@ -179,7 +179,8 @@ class SensorRole(Role):
     def _accept_xchg(self, key: str, msg: Xchg) -> None:
         """A payload through the link emulator: buffered for its round unless late or not a neighbour's."""
         if not self.inbox.refused(msg.src, msg.k, msg.r, (self.k, self.r), self._nbrs):
-            self.inbox.put(msg.src, msg.k, msg.r, msg.payload)
+            # (an unusable payload — NaN, a bad shape — has come and is of no use: a lost link, no wait)
+            self.inbox.put(msg.src, msg.k, msg.r, None if isinstance(msg, UnusableXchg) else msg.payload)
             if msg.k == self.k and msg.r == self.r:
                 self._check_round()
 

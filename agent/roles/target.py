@@ -21,6 +21,7 @@ from .common import Role
 
 class TargetRole(Role):
     name = "target"
+    wait_depth = 1
     #: the truth (for the sensors to measure) and its state (for the world); an intelligent target reads the
     #: estimates it evades
     PORTS = Ports(writes=("target/truth", "target/state"), reads=("world/tick", "world/event", "agent/*/estimate"))

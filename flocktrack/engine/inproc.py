@@ -1,8 +1,10 @@
 """The in-process engine: every role on one :class:`agent.bus.LocalBus`, lockstep, deterministic.
 
 Delivery is FIFO and synchronous. When the bus goes idle while some role still waits (a message that
-will never come), the deadline fires for every waiting role in a fixed order — the in-process
-equivalent of a lockstep deadline — so the run always completes.
+will never come), the deadline fires — the in-process equivalent of a lockstep deadline — so the run
+always completes. It fires innermost first (:attr:`agent.roles.common.Role.wait_depth`): for the waiting
+sensors' rounds, in a fixed order; the target's and then the world's wait only when nothing inside them
+still waits, so a tick closes on the states its sensors could still send, never ahead of them.
 """
 
 from __future__ import annotations
@@ -36,8 +38,10 @@ def run_inproc(sc: Scenario, progress: Callable[[int, int], None] | None = None,
             stuck = [r for r in roles.all() if r.waiting]
             if not stuck:
                 raise RuntimeError(f"in-process run stalled at tick {roles.world.k} with no role waiting")
+            inner = min(r.wait_depth for r in stuck)
             for r in stuck:
-                r.on_deadline()
+                if r.wait_depth == inner:
+                    r.on_deadline()
         if progress is not None and roles.world.k != last_k:
             last_k = roles.world.k
             progress(last_k, sc.run.ticks)

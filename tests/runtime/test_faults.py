@@ -511,3 +511,40 @@ def test_a_sensor_sits_out_a_tick_whose_membership_marks_it_dead():
     assert s0.counters["sat_out_ticks"] == 3 and s0.k == 6
     assert {k for _, k in pubs} == {3, 4, 5}
     assert {key.split("/")[-1] for key, _ in pubs} >= {"meas", "xchg", "estimate", "state"}
+
+
+def test_a_nan_sending_sensor_costs_its_neighbours_no_deadline_and_the_flock_keeps_its_clock(tmp_path):
+    """Byzantine NaN payloads are dropped at every receiver, and each round closes as soon as the rest
+    have come (the NaN payload is a lost link): no round waits out a deadline, the world closes every tick
+    on every state, and every sensor reports to the end."""
+    import csv
+
+    events = [{"kind": "byzantine", "targets": "agents:3", "mode": "nan", "start": 50}]
+    s, info = _inproc(tmp_path, "gu_hu_normal.toml", events, **{"run.ticks": 300, "estimator.resilient_f": 1})
+    c = info["sensor_counters"]
+    assert sum(x.get("deadline_rounds", 0) for x in c) == 0
+    assert sum(x.get("unusable_payloads", 0) for x in c) > 0
+    assert info["world"]["missing_states"] == 0 and info["world"]["late_states"] == 0
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    assert len(rows) == 300 and all(r["reporting"] == "10" for r in rows)
+    assert s["network_rmse"] < 0.2, s["network_rmse"]
+
+
+def test_in_process_deadlines_fire_innermost_first_so_the_world_never_runs_ahead(tmp_path):
+    """A payload that never comes: the waiting sensors' rounds end by deadline before the world's wait, so
+    the world closes each tick on every sensor's state instead of running ahead of the flock."""
+    from agent import wire
+    from agent.bus import LocalBus
+    from flocktrack.engine.inproc import run_inproc
+
+    class Lossy(LocalBus):
+        def publish_raw(self, key, data):
+            if key.startswith("agent/3/to/") and wire.decode(key, data).k >= 20:
+                return
+            super().publish_raw(key, data)
+
+    _, sc = _scenario("gu_hu_normal.toml", [], **{"run.ticks": 60})
+    metrics, roles, _ = run_inproc(sc, bus=Lossy())
+    assert sum(r.counters["deadline_rounds"] for r in roles.sensors) > 0
+    assert roles.world.stats["missing_states"] == 0 and roles.world.stats["late_states"] == 0
+    assert metrics.summary()["ticks_seen"] == 60

@@ -54,3 +54,10 @@ def test_realtime_budgets_fit_the_sensors_rounds_and_the_targets_wait_into_one_p
         assert s.due((3, R - 1), 0.3 * period, 0.3 * period, anchor=0.0) == pytest.approx(target)
     lock = role_budget(sc, "lockstep", "sensor")
     assert not lock.schedule and lock.slot_s == sc.run.deadline_s and lock.warmup_s is None
+    # an outer wait outlasts the ones inside it: the target's outlasts a sensor's whole tick, the world's the target's
+    from agent.roles.target import TargetRole
+    from topology.world import WorldRole
+
+    target = role_budget(sc, "lockstep", "target", depth=TargetRole.wait_depth).slot_s
+    world = role_budget(sc, "lockstep", "world", depth=WorldRole.wait_depth).slot_s
+    assert (R + 1) * lock.slot_s < target < world

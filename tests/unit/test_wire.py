@@ -256,3 +256,31 @@ def test_an_addressed_exchange_payload_is_its_senders_and_unseen_by_observers():
             wire.decode(key, est)
     with pytest.raises(wire.WireError):
         wire.decode("agent/3/to/5/estimate", data)     # an exchange payload on it: the wrong type
+
+
+def test_an_unusable_exchange_payload_is_dropped_but_its_round_hears_that_it_came():
+    """NaN or a bad shape in an exchange payload: the arrays are dropped and counted, and the receiver is
+    handed only the header (sender, tick, round) — never the arrays — so its round need not wait for it."""
+    nan = wire.Xchg(src=2, k=7, r=1, payload={"a": np.array([np.nan, 1.0])})
+    with pytest.raises(wire.WireError, match="non_finite") as e:
+        wire.decode("agent/2/to/0/xchg", wire.encode(nan))
+    h = e.value.header
+    assert isinstance(h, wire.UnusableXchg) and (h.src, h.k, h.r, h.payload, h.reason) == (2, 7, 1, {}, "non_finite")
+    # a header that lies about its sender says nothing; a malformed header neither
+    with pytest.raises(wire.WireError) as e:
+        wire.decode("agent/3/to/0/xchg", wire.encode(nan))
+    assert e.value.header is None
+    d = nan.to_wire()
+    d["r"] = -1
+    with pytest.raises(wire.WireError) as e:
+        wire.decode("agent/2/to/0/xchg", msgpack.packb(d, use_bin_type=True))
+    assert e.value.header is None
+    # on the bus: counted as dropped, not received; the handler sees the header only
+    bus = LocalBus()
+    got = []
+    bus.subscribe("agent/*/to/0/xchg", lambda k, m: got.append(m))
+    bus.publish("agent/2/to/0/xchg", nan)
+    bus.publish("agent/1/to/0/xchg", wire.Xchg(src=1, k=7, r=1, payload={"a": np.zeros(2)}))
+    bus.drain()
+    assert [type(m).__name__ for m in got] == ["UnusableXchg", "Xchg"] and got[0].payload == {}
+    assert bus.stats.dropped == {"non_finite": 1} and bus.stats.received == 1
