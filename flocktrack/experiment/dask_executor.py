@@ -194,13 +194,22 @@ class DaskExecutor:
             self.cluster.close()
 
 
+#: Dask's defaults cost these runs about a fifth of their speed: glibc told to give memory back at every
+#: 64 KiB freed (``MALLOC_TRIM_THRESHOLD_``, for workers that hold data between tasks; a run holds little)
+#: and a statistical profiler sampling the running task every 10 ms. The cluster this module starts runs
+#: without them; docs/sweeps.md says how to do the same for workers of one's own.
+WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                 "distributed.worker.profile.enabled": False}
+
+
 def _local_cluster(distributed, jobs: int, retries: int):
     """``jobs`` single-threaded worker processes on this machine; the dashboard on a free port, or none when it
-    cannot bind. A run may kill ``retries`` + 1 workers before it counts as failed."""
+    cannot bind. A run may kill ``retries`` + 1 workers before it counts as failed. :data:`WORKER_CONFIG`
+    makes the workers as fast as the local pool's processes."""
     import dask
 
     kw = {"n_workers": jobs, "threads_per_worker": 1, "processes": True, "silence_logs": logging.ERROR}
-    with dask.config.set({"distributed.scheduler.allowed-failures": retries}):
+    with dask.config.set({**WORKER_CONFIG, "distributed.scheduler.allowed-failures": retries}):
         try:
             return distributed.LocalCluster(dashboard_address=":0", **kw)
         except OSError:

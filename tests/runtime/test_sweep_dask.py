@@ -38,7 +38,7 @@ INPROC_FILES = {"summary.json", "metrics.csv", "scenario.toml", "design.json", "
 @pytest.fixture(scope="module")
 def scheduler():
     """One cluster for the module: 2 single-threaded worker processes that a run may kill twice."""
-    with dask.config.set({"distributed.scheduler.allowed-failures": 2}):
+    with dask.config.set({**dx.WORKER_CONFIG, "distributed.scheduler.allowed-failures": 2}):
         cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
     try:
         yield cluster.scheduler_address
