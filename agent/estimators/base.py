@@ -113,8 +113,9 @@ class Estimator(ABC):
         if neighbour_estimates:
             xs = [np.asarray(neighbour_estimates[j], float) for j in sorted(neighbour_estimates)]
             self._set_x(np.mean(xs, axis=0))
-        if neighbour_covariances:
-            Ps = [np.asarray(neighbour_covariances[j], float) for j in sorted(neighbour_covariances)]
+        Ps = [np.asarray(neighbour_covariances[j], float) for j in sorted(neighbour_covariances or {})]
+        Ps = [P for P in Ps if is_covariance(P)]    # (a peer's P that is no covariance is not taken up)
+        if Ps:
             self._set_P(np.mean(Ps, axis=0))
 
     def _set_x(self, x: np.ndarray) -> None:  # pragma: no cover - overridden where supported
@@ -122,6 +123,20 @@ class Estimator(ABC):
 
     def _set_P(self, P: np.ndarray) -> None:  # noqa: B027 - a no-op on purpose: estimators without a covariance ignore it
         """Overwrite the covariance/Riccati matrix (only estimators that have one)."""
+
+
+def is_covariance(P: np.ndarray) -> bool:
+    """A square, finite, symmetric (to rounding) and positive-definite matrix: Cholesky succeeds."""
+    if P.ndim != 2 or P.shape[0] != P.shape[1] or not all_finite(P):
+        return False
+    scale = max(float(np.abs(P).max()), 1e-300)
+    if float(np.abs(P - P.T).max()) > 1e-9 * scale:
+        return False
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 def all_finite(a: np.ndarray) -> bool:

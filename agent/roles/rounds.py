@@ -35,7 +35,9 @@ class RoundInbox:
         return False
 
     def put(self, j: int, k: int, r: int, payload: dict[str, np.ndarray] | None) -> None:
-        self._buf.setdefault((k, r), {})[j] = payload
+        got = self._buf.setdefault((k, r), {})
+        if payload is not None or j not in got:    # (an unusable copy never replaces a usable one)
+            got[j] = payload
 
     def complete(self, k: int, r: int, neighbours: Collection[int], held: Collection[int]) -> bool:
         """Has every neighbour's payload of (k, r) arrived, or been ``held`` for later by the link emulator?"""

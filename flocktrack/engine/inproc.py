@@ -2,9 +2,12 @@
 
 Delivery is FIFO and synchronous. When the bus goes idle while some role still waits (a message that
 will never come), the deadline fires — the in-process equivalent of a lockstep deadline — so the run
-always completes. It fires innermost first (:attr:`agent.roles.common.Role.wait_depth`): for the waiting
-sensors' rounds, in a fixed order; the target's and then the world's wait only when nothing inside them
-still waits, so a tick closes on the states its sensors could still send, never ahead of them.
+always completes. It fires innermost first (:attr:`agent.roles.common.Role.wait_depth`) and earliest first:
+for the sensors waiting on the earliest round (``wait_key`` (k, r)), in a fixed order — every neighbour of
+theirs has sent that round, so what they lack will never come; a sensor in a later round waits only for
+them — then the target's and the world's wait only when nothing inside them still waits. A payload lost on
+the way costs the rounds that wanted it and nothing more, and a tick closes on every state its sensors
+could still send, never ahead of them.
 """
 
 from __future__ import annotations
@@ -39,8 +42,10 @@ def run_inproc(sc: Scenario, progress: Callable[[int, int], None] | None = None,
             if not stuck:
                 raise RuntimeError(f"in-process run stalled at tick {roles.world.k} with no role waiting")
             inner = min(r.wait_depth for r in stuck)
+            stuck = [r for r in stuck if r.wait_depth == inner]
+            first = min(r.wait_key for r in stuck)
             for r in stuck:
-                if r.wait_depth == inner:
+                if r.wait_key == first:
                     r.on_deadline()
         if progress is not None and roles.world.k != last_k:
             last_k = roles.world.k
