@@ -165,6 +165,7 @@ class LinearSensor:
         self.C = np.atleast_2d(np.asarray(C, dtype=float))
         self.R = np.atleast_2d(np.asarray(R, dtype=float))
         self._L = np.linalg.cholesky(self.R)
+        self.last_v: np.ndarray | None = None   # the noise of the last measurement
 
     def measure(self, x: np.ndarray, b: float, rng: np.random.Generator) -> np.ndarray:
         v = self._L @ rng.standard_normal(self.C.shape[0])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import time
@@ -106,7 +107,7 @@ def main() -> int:
                         "vs_central": _mean(rows, "vs_central"), "network_rmse": _mean(rows, "network_rmse"),
                         "runs": rows})
         print(f"{label}: ANEES {_f(results[-1]['anees'])}, efficiency {_f(results[-1]['efficiency'])}", flush=True)
-    out = {"machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version(),
+    out = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                        "platform": platform.platform(), "date": time.strftime("%Y-%m-%d")},
            "seconds": round(time.time() - t0, 1), "cases": results}
     (ROOT / "bench" / "results" / "credibility.json").write_text(json.dumps(out, indent=1))

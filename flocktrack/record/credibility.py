@@ -114,14 +114,21 @@ def settled(scored: list[int], central: dict[int, tuple] | None, factor: float =
     — a guess, not a distribution the target's start was drawn from — dominates both the bound and the
     errors: a P₀ larger than the start's real error makes every filter look conservative and better than
     the bound there, and its few large traces would outweigh the whole steady state in a mean."""
-    if not central:
+    return _settled(scored, _traces(central), factor)
+
+
+def _traces(central: dict[int, tuple] | None) -> dict[int, float]:
+    """trace(P_centralₖ) by tick, once."""
+    return {k: float(np.trace(P)) for k, (_, P) in (central or {}).items()}
+
+
+def _settled(scored: list[int], traces: dict[int, float], factor: float) -> list[int]:
+    known = [traces[k] for k in scored if k in traces]
+    if not known:
         return scored
-    traces = [float(np.trace(central[k][1])) for k in scored if k in central]
-    if not traces:
-        return scored
-    limit = factor * float(np.median(traces))
+    limit = factor * float(np.median(known))
     for j, k in enumerate(scored):
-        if k in central and np.trace(central[k][1]) <= limit:
+        if k in traces and traces[k] <= limit:
             return scored[j:]
     return scored
 
@@ -159,7 +166,8 @@ def report(truth: dict[int, np.ndarray], est: dict[int, dict[int, np.ndarray]],
     efficiency against the centralized reference (``central``: :meth:`Reference.run`), both over the scored
     ticks after the start-up transient (:func:`settled`; ``from_tick``); with the measurements and the
     reference's model, each node's NIS (:func:`innovation_consistency`)."""
-    scored = settled(scored, central)
+    traces = _traces(central)
+    scored = _settled(scored, traces, 2.0)
     nodes = sorted({i for k in scored for i in est.get(k, {})})
     per_node, pooled_e, pooled_P = {}, [], []
     for i in nodes:
@@ -182,7 +190,7 @@ def report(truth: dict[int, np.ndarray], est: dict[int, dict[int, np.ndarray]],
         out["consistent_nodes"] = sum(1 for c in per_node.values() if c["consistent"])
     if central:
         ks = [k for k in scored if k in central and k in truth]
-        bound = float(np.mean([np.trace(central[k][1]) for k in ks])) if ks else math.nan
+        bound = float(np.mean([traces[k] for k in ks])) if ks else math.nan
         ref_mse = float(np.mean([np.sum((central[k][0] - truth[k]) ** 2) for k in ks])) if ks else math.nan
         eff, rel = {}, {}
         for i in nodes:
