@@ -24,8 +24,8 @@
 * Output: ``DIR/results.csv`` (tidy: one row per run and metric — the grid keys, ``seed``, ``run_id``,
   ``status``, ``metric``, ``value``, ``error``; the scalar metrics of ``summary.json`` and
   ``per_node_rmse[i]``), ``DIR/summary.csv`` (per cell and metric: n, mean, bootstrap 95 % CI, std,
-  median, 10/90 % quantiles), ``DIR/sweep.json`` (grid, seeds, timings, failures) and
-  ``DIR/figures/*.png`` (:mod:`dashboards.sweep_plots`).
+  median, 10/90 % quantiles), ``DIR/sweep.json`` (grid, seeds, timings, failures, executor, each Dask run's
+  host and where its recording stayed) and ``DIR/figures/*.png`` (:mod:`dashboards.sweep_plots`).
 """
 
 from __future__ import annotations
