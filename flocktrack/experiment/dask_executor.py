@@ -120,7 +120,9 @@ class DaskExecutor:
         except BaseException:
             self.close()
             raise
-        self.slots = max(1, sum(w.get("nthreads", 1) for w in self.client.scheduler_info()["workers"].values()))
+        workers = self.client.scheduler_info()["workers"].values()
+        self.n_workers = len(workers)
+        self.slots = max(1, sum(w.get("nthreads", 1) for w in workers))
         # (a local cluster without bokeh serves only a page that asks for it: no link then)
         self.dashboard = (self.client.dashboard_link or None) if scheduler or has("bokeh") else None
 
@@ -139,7 +141,7 @@ class DaskExecutor:
 
     def describe(self, n_tasks: int) -> str:
         where = "a local Dask cluster" if self.cluster is not None else f"the Dask cluster at {self.scheduler}"
-        return f"{where} ({self.slots} worker threads)"
+        return f"{where} ({self.n_workers} workers, {self.slots} threads)"
 
     def info(self) -> dict:
         return {"kind": "dask", "scheduler": self.address, "workers": self.slots,
