@@ -9,8 +9,12 @@ receiver, on link j → i     delay: held ``delay_ticks`` ± ``jitter_ticks`` wh
                             (in realtime what misses its round's deadline is lost, in lockstep the round
                             waits); duplicate; reorder (a payload held back until its successor has gone in)
 sender, at the targeted i   byzantine payloads: nan, huge (×1e6), stale (replayed from the fault's first
-                            tick); byzantine bias on the measurement; outliers (the impulsive measurement
-                            noise of García Carrillo et al.); noise (measurement noise covariance × scale²)
+                            tick), noise (each value × (1 + ``magnitude``/100 · N(0, 1))), mimic (a
+                            neighbour's last payload with its estimate moved by ``magnitude``/10 in every
+                            coordinate); byzantine measurements: bias (``bias``, else ``magnitude`` in every
+                            coordinate), drift (a bias growing by ``bias``, else ``magnitude``/1000, a tick
+                            from the fault's start); outliers (the impulsive measurement noise of García
+                            Carrillo et al.); noise (measurement noise covariance × scale²)
 ==========================  ================================================================================
 
 Every draw comes from the sensor's own generators — ``netem`` (receiver side), ``sensor_faults`` (noise,
@@ -88,6 +92,9 @@ class LinkEmulator:
         self._clocked = False                       # a process driver calls on_timer; the in-process engine not
         self._slot: tuple[str, Any] | None = None   # the payload a reorder holds back
         self._stale: dict[int, dict] = {}           # Byzantine "stale": the payloads replayed, per round
+        self._heard: dict[str, np.ndarray] | None = None   # Byzantine "mimic": the last payload heard
+        self._k = 0                                 # the tick under way (release)
+        self._began: dict[int, int] = {}            # fault id → the tick it began at this sensor
         self._burst_ticks, self._burst_mag = 0, 0.0
 
     # ------------------------------------------------------------------ the fault plan
@@ -103,6 +110,7 @@ class LinkEmulator:
         if ev.kind in SENDER_KINDS and self.i not in ev.agents:
             return
         self.faults[ev.id] = _Active(ev, frozenset(ev.agents), frozenset(frozenset(ab) for ab in ev.links))
+        self._began[ev.id] = self._k
         self.counters[f"fault_{ev.kind}"] += 1
 
     def burst(self, cmd: OutlierBurst) -> None:
@@ -119,6 +127,8 @@ class LinkEmulator:
         """A payload (``msg.src``, ``msg.k`` …) heard on the link msg.src → i. Every copy that goes in now —
         a duplicate, a reordered predecessor, the payload itself — is handed to ``deliver``, in order.
         True: the payload is held for whole ticks, so its round need not wait for it."""
+        if self.faults and getattr(msg, "payload", None):
+            self._heard = msg.payload     # (what a mimicking Byzantine sender replays)
         for f in [f for f in self.faults.values() if f.ev.kind in LINK_KINDS and f.on_link(self.i, msg.src)]:
             ev = f.ev
             if ev.kind == "delay":
@@ -164,6 +174,7 @@ class LinkEmulator:
 
     def release(self, k: int) -> None:
         """Tick ``k`` begins: deliver the payloads held for whole ticks whose time has come (late ones)."""
+        self._k = k
         for kr in [kr for kr in self._withheld if kr[0] < k]:
             del self._withheld[kr]
         due = [h for h in self._held if h[0] <= k]
@@ -211,6 +222,11 @@ class LinkEmulator:
                 payload = {k: v * 1e6 for k, v in payload.items()}
             elif ev.mode == "stale":
                 payload = self._stale.setdefault(r, {k: v.copy() for k, v in payload.items()})
+            elif ev.mode == "noise":
+                s = ev.magnitude / 100.0
+                payload = {k: v * (1.0 + s * self._fault_rng.standard_normal(v.shape)) for k, v in payload.items()}
+            elif ev.mode == "mimic" and self._heard is not None and self._heard.keys() == payload.keys():
+                payload = mimic(self._heard, ev.magnitude / 10.0)
             self.counters["byzantine_payloads"] += 1
         return payload
 
@@ -238,6 +254,9 @@ class LinkEmulator:
             if ev.mode == "bias":
                 bias = ev.bias or [ev.magnitude] * y.size
                 y = y + np.asarray(bias, float)[: y.size]
+            elif ev.mode == "drift":
+                rate = np.asarray(ev.bias or [ev.magnitude / 1000.0] * y.size, float)[: y.size]
+                y = y + rate * (self._k - self._began.get(ev.id, self._k))
         return y
 
     def _outlier(self, rng: np.random.Generator, size: int, magnitude: float) -> np.ndarray:
@@ -245,3 +264,15 @@ class LinkEmulator:
         d = rng.standard_normal(size)
         self.counters["outliers_injected"] += 1
         return magnitude * d / max(np.linalg.norm(d), 1e-12)
+
+
+def mimic(heard: dict[str, np.ndarray], offset: float) -> dict[str, np.ndarray]:
+    """A neighbour's payload passed off as one's own, its estimate moved by ``offset`` in every coordinate:
+    for an information payload (χ¹, χ², χ³) χ² ← χ² + χ¹ δ moves the estimate it implies by δ; other payloads
+    are shifted as they are."""
+    out = {k: v.copy() for k, v in heard.items()}
+    if "chi1" in out and "chi2" in out:
+        out["chi2"] = out["chi2"] + out["chi1"] @ np.full(out["chi2"].shape, offset)
+    else:
+        out = {k: v + offset for k, v in out.items()}
+    return out

@@ -489,7 +489,7 @@ def control_args(items: list[str] | str) -> dict[str, Any]:
 FAULT_KINDS = ("link_loss", "delay", "duplicate", "reorder", "partition", "crash", "pause", "router_restart",
                "byzantine", "outliers", "blind", "noise", "evade")
 FAULT_DIRECTIONS = ("both", "in", "out")
-BYZANTINE_MODES = ("nan", "huge", "stale", "bias")
+BYZANTINE_MODES = ("nan", "huge", "stale", "bias", "drift", "noise", "mimic")
 FAULT_LIMITS = {"delay_ticks": 1000, "jitter_ticks": 1000, "delay_ms": 60_000.0, "jitter_ms": 60_000.0}
 MAX_BURST_TICKS = 10_000         #: control/outlier_burst ticks
 MAX_INJECT_TICKS = 10**7         #: control/inject duration

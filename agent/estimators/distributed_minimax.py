@@ -10,6 +10,11 @@ Each node i runs, at every tick t (b = ctx.b is the visibility weight; the paper
 
 N χᵢ approximates Σⱼ χⱼ (17); the consensus is re-initialised from the local χ every tick, and
 η = consensus_rate(δ_max) is the same at every node so the network sum of χ is preserved.
+
+``resilient_f`` = f > 0 makes (18b) resilient to Byzantine neighbours: each round, the payloads that are
+inconsistent with the node's own are discarded (:class:`agent.estimators.information_gate.InformationGate`),
+and W-MSR trims what is left (:func:`agent.estimators.consensus.trimmed_disagreement`). The neighbours a
+node discarded in a tick are published beside its estimate (``report()`` → ``aux["suspected"]``).
 With C, R, S equal at every node (and equal b), χ¹ and χ³ are identical everywhere, so every
 node's P and Σ equal the centralized ones (:class:`agent.estimators.minimax.CentralizedMinimax`)
 and, when all payloads arrive, **the mean of the node estimates equals the centralized estimate
@@ -34,6 +39,7 @@ import numpy as np
 from ..schema import Matrix, ScenarioError, check_covariance
 from .base import Estimator, Payload, TickContext, valid_inbox
 from .consensus import consensus_rate, consensus_round
+from .information_gate import InformationGate
 from .minimax import information_update, inverse_or_zero, sensor_information
 from .riccati import sym
 from .spec import EstimatorSpec
@@ -54,11 +60,13 @@ class DistributedMinimax(Estimator):
     x0, P0 :   initial estimate and matrix.
     rounds :   consensus rounds per tick (0 = purely local χ).
     eta_rule : consensus rate rule passed to :func:`agent.estimators.consensus.consensus_rate`.
+    resilient_f : W-MSR's f, with the consistency gate (0: plain consensus).
+    beta_max :  the largest visibility weight b a sensor can have (the gate's bound on χ¹ = b² C′R⁻¹C).
     """
 
     def __init__(self, A: np.ndarray, Q: np.ndarray, C: np.ndarray, R: np.ndarray,
                  S: np.ndarray | None, n: int, x0: np.ndarray, P0: np.ndarray, rounds: int,
-                 eta_rule: str = "1/(dmax+1)", resilient_f: int = 0):
+                 eta_rule: str = "1/(dmax+1)", resilient_f: int = 0, beta_max: float = 1.0):
         self.resilient_f = int(resilient_f)
         self.A = np.asarray(A, dtype=float)
         self.Q = np.asarray(Q, dtype=float)
@@ -74,12 +82,17 @@ class DistributedMinimax(Estimator):
         self._ctx: TickContext | None = None
         self._chi: dict[str, np.ndarray] | None = None
         self.dropped = 0  # neighbour payloads missing or malformed (all ticks, all rounds)
+        self.gate = (InformationGate(self.C, self.R_inv, self.S_inv, beta_max=max(1.0, beta_max) ** 2)
+                     if self.resilient_f > 0 else None)
+        self.suspected: set[int] = set()   # neighbours whose payload the gate discarded this tick
+        self.suspicions = 0                # payloads the gate discarded (all ticks, all rounds)
 
     # --- Estimator interface ---------------------------------------------------------------------
     def start(self, ctx: TickContext, y: np.ndarray) -> None:
         c1, c2, c3 = sensor_information(self.C, self.R_inv, self.S_inv, y, ctx.b)   # (18a)
         self._ctx = ctx
         self._chi = {"chi1": c1, "chi2": c2, "chi3": c3}
+        self.suspected = set()
 
     def payload(self, r: int) -> Payload:
         chi = self._require_chi()
@@ -92,6 +105,12 @@ class DistributedMinimax(Estimator):
         from_neighbours = {j: p for j, p in inbox.items() if j in allowed}
         good = valid_inbox(from_neighbours, self.payload_shapes())
         self.dropped += len(allowed) - len(good)
+        if self.gate is not None:
+            lying = self.gate.suspects(chi, good, self._x)
+            if lying:
+                self.suspected.update(lying)
+                self.suspicions += len(lying)
+                good = {j: p for j, p in good.items() if j not in lying}
         eta = consensus_rate(ctx.delta_max, self.eta_rule)
         new = consensus_round(chi, good, eta, keys=_KEYS, trim=self.resilient_f)   # (18b), W-MSR if f > 0
         new["chi1"], new["chi3"] = sym(new["chi1"]), sym(new["chi3"])
@@ -104,6 +123,12 @@ class DistributedMinimax(Estimator):
             self._x, self._P, self.A, self.Q, N * chi["chi1"], N * chi["chi2"], N * chi["chi3"])
         self._chi = None
         self._ctx = None
+
+    def report(self) -> dict[str, np.ndarray]:
+        """With the gate on: ``suspected``, the neighbours whose payload it discarded in this tick."""
+        if self.gate is None:
+            return {}
+        return {"suspected": np.array(sorted(self.suspected), dtype=float)}
 
     @property
     def x(self) -> np.ndarray:
@@ -145,8 +170,8 @@ class DistributedKalman(DistributedMinimax):
 
     def __init__(self, A: np.ndarray, Q: np.ndarray, C: np.ndarray, R: np.ndarray, n: int,
                  x0: np.ndarray, P0: np.ndarray, rounds: int, eta_rule: str = "1/(dmax+1)",
-                 resilient_f: int = 0):
-        super().__init__(A, Q, C, R, None, n, x0, P0, rounds, eta_rule, resilient_f)
+                 resilient_f: int = 0, beta_max: float = 1.0):
+        super().__init__(A, Q, C, R, None, n, x0, P0, rounds, eta_rule, resilient_f, beta_max)
 
 
 # ----------------------------------------------------------------------------- the runtime's specs
@@ -169,13 +194,20 @@ def _check_minimax(sc: Any, p: MinimaxParams) -> None:
 def _build_minimax(sc: Any, i: int, p: MinimaxParams, design: Mapping[str, Any]) -> DistributedMinimax:
     e = sc.estimator
     return DistributedMinimax(sc.A, sc.filter_Q(), sc.C, sc.R, np.array(p.S, float), sc.sensors.n,
-                              sc.initial_estimates()[i], sc.initial_covariance(), e.rounds, e.eta, e.resilient_f)
+                              sc.initial_estimates()[i], sc.initial_covariance(), e.rounds, e.eta, e.resilient_f,
+                              _beta_max(sc))
 
 
 def _build_kalman(sc: Any, i: int, p: Any, design: Mapping[str, Any]) -> DistributedKalman:
     e = sc.estimator
     return DistributedKalman(sc.A, sc.filter_Q(), sc.C, sc.R, sc.sensors.n, sc.initial_estimates()[i],
-                             sc.initial_covariance(), e.rounds, e.eta, e.resilient_f)
+                             sc.initial_covariance(), e.rounds, e.eta, e.resilient_f, _beta_max(sc))
+
+
+def _beta_max(sc: Any) -> float:
+    """The largest visibility weight of the run: the sensors' β, or a scheduled graph's b."""
+    bs = [b for g in sc.topology.graphs for b in g.b]
+    return max([1.0, float(sc.sensors.beta), *map(float, bs)])
 
 
 MINIMAX = EstimatorSpec(

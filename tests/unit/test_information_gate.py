@@ -1,0 +1,47 @@
+"""The consistency gate of the resilient minimax consensus (agent/estimators/information_gate.py): honest
+(18a) payloads and their mixtures pass, forged information matrices and lying measurements do not."""
+
+import numpy as np
+
+from agent.estimators.information_gate import InformationGate
+from agent.estimators.minimax import sensor_information
+
+C = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+R = 0.04 * np.eye(2)
+R_INV, S_INV = np.linalg.inv(R), np.linalg.inv(0.5 * np.eye(2))
+
+
+def _payload(y, b=1.0):
+    c1, c2, c3 = sensor_information(C, R_INV, S_INV, np.asarray(y, float), b)
+    return {"chi1": c1, "chi2": c2, "chi3": c3}
+
+
+def _mix(ps, w):
+    return {k: sum(wi * p[k] for wi, p in zip(w, ps)) for k in ps[0]}
+
+
+def test_honest_payloads_and_mixtures_pass_and_liars_do_not():
+    rng = np.random.default_rng(1)
+    gate = InformationGate(C, R_INV, S_INV)
+    x_true, x_hat = np.array([3.0, -2.0, 0.5, 0.1]), np.array([3.4, -2.3, 0.4, 0.0])   # a poor prediction
+    meas = [C @ x_true + rng.multivariate_normal(np.zeros(2), R) for _ in range(4)]
+    own = _payload(meas[0])
+    honest = {1: _payload(meas[1]), 2: _mix([_payload(m) for m in meas[1:]], [0.5, 0.3, 0.2])}
+    assert gate.suspects(own, honest, x_hat) == []          # the prediction error is common: it cancels
+    liars = {3: {k: 1e6 * v for k, v in honest[1].items()},                               # huge
+             4: _payload(meas[2] + np.array([2.0, 0.0])),                                 # a biased measurement
+             5: {**honest[1], "chi3": 2 * honest[1]["chi3"]},                             # forged χ³
+             6: {**honest[1], "chi1": honest[1]["chi1"] + 0.3 * np.eye(4)},               # not C′R⁻¹C's shape
+             7: _payload(meas[3], b=3.0)}                                                 # β beyond b_max
+    assert gate.suspects(own, {**honest, **liars}, x_hat) == [3, 4, 5, 6, 7]
+
+
+def test_the_false_alarm_rate_is_the_stated_one():
+    rng = np.random.default_rng(7)
+    gate = InformationGate(C, R_INV, S_INV, alpha=0.01)
+    x = np.zeros(4)
+    alarms = 0
+    for _ in range(4000):
+        own, other = (_payload(rng.multivariate_normal(np.zeros(2), R)) for _ in range(2))
+        alarms += len(gate.suspects(own, {1: other}, x))
+    assert 0.005 < alarms / 4000 < 0.02
