@@ -15,7 +15,8 @@ sensor (receiver)  delay: held ``delay_ticks`` (± ``jitter_ticks``) ticks — a
                    counted — or ``delay_ms`` (± ``jitter_ms``) of wall-clock time: in realtime what
                    misses its round's deadline is lost, in lockstep the round waits for it,
                    duplicate and reorder of exchange payloads (the protocol must be immune)
-sensor (sender)    byzantine (nan | huge | stale | bias payloads), outliers (impulsive noise of
+sensor (sender)    byzantine (nan | huge | stale | noise | mimic payloads, bias | drift measurements;
+                   agent/link_emulation.py), outliers (impulsive noise of
                    paper 004), noise (measurement noise × noise_scale)
 target             evade (an extra acceleration ⟂ to its velocity)
 launcher           crash (SIGKILL; restart at heal), pause (SIGSTOP / SIGCONT), router_restart

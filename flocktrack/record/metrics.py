@@ -28,7 +28,7 @@ import numpy as np
 
 from agent.estimators.registry import specs
 from agent.estimators.spec import RunTrace
-from agent.wire import Estimate, Meas, Message, State, Tick, Truth
+from agent.wire import Control, Estimate, Meas, Message, State, Tick, Truth, WireError, fault_event
 from topology.graph import algebraic_connectivity, is_connected
 
 
@@ -47,9 +47,10 @@ class MetricsCollector:
 
     def __init__(self, n: int, ticks: int, pos_dims: int, burn_in: int = 0,
                  tmsee_lower: Sequence[float] | None = None, *, design: dict | None = None, T: float | None = None,
-                 summary_hook: SummaryHook | None = None, reference=None):
+                 summary_hook: SummaryHook | None = None, reference=None, resilient_f: int = 0):
         """``reference``: the centralized model the estimates are held against
-        (:class:`flocktrack.record.credibility.Reference`; None: no efficiency)."""
+        (:class:`flocktrack.record.credibility.Reference`; None: no efficiency); ``resilient_f``: the W-MSR f
+        the graph is checked against (flocktrack/record/suspicion.py)."""
         self.summary_hook = summary_hook
         self.n, self.ticks, self.d, self.burn_in = int(n), int(ticks), int(pos_dims), int(burn_in)
         self.tmsee_lower = None if tmsee_lower is None else [float(v) for v in tmsee_lower]
@@ -66,6 +67,8 @@ class MetricsCollector:
         self._cov: dict[int, dict[int, np.ndarray]] = {}          #: tick → node → the P reported for its x̂
         self._meas: dict[int, dict[int, tuple[float, np.ndarray]]] = {}   #: tick → node → (b, y)
         self.reference = reference
+        self.resilient_f = int(resilient_f)
+        self._byzantine: dict[int, list[list]] = {}   #: agent → its Byzantine [start, heal] windows
 
     @classmethod
     def for_scenario(cls, sc, design: Mapping[str, Any]) -> "MetricsCollector":
@@ -75,11 +78,12 @@ class MetricsCollector:
 
         return cls(sc.sensors.n, sc.run.ticks, sc.pos_dims, sc.run.burn_in, design.get("tmsee_lower"),
                    design=dict(design), T=sc.run.T, summary_hook=None if spec is None else spec.summary,
-                   reference=Reference.of(sc) if sc.kind == "flock" else None)
+                   reference=Reference.of(sc) if sc.kind == "flock" else None,
+                   resilient_f=sc.estimator.resilient_f if sc.kind == "flock" else 0)
 
     def subscribe(self, bus) -> None:
         for pat in ("world/tick", "target/truth", "agent/*/estimate", "target/state", "agent/*/meas",
-                    "fusion/estimate"):
+                    "fusion/estimate", "world/event"):
             bus.subscribe(pat, self.ingest)
 
     def ingest(self, key: str, msg: Message) -> None:
@@ -105,12 +109,29 @@ class MetricsCollector:
             t, tm = msg.aux.get("t"), msg.aux.get("t_mid")
             if t is not None and tm is not None:
                 self._fusion.setdefault(msg.name, []).append((float(t[0]), float(tm[0]), msg.x, msg.x_next))
+        elif isinstance(msg, Control) and key == "world/event" and msg.verb == "fault":
+            self._note_fault(msg)
         elif isinstance(msg, Meas):
             self._meas.setdefault(msg.k, {})[msg.src] = (msg.b, msg.y)
             if msg.v is not None:
                 self._v.setdefault(msg.k, {})[msg.src] = msg.v
             if self.T is not None and msg.y.shape == msg.pos.shape == (2,):
                 self._meas_pos.append((msg.t, msg.pos + msg.y))
+
+    def _note_fault(self, msg: Control) -> None:
+        """A Byzantine fault's start or heal, as the world announced it (the agents it resolved to)."""
+        try:
+            ev = fault_event(msg.args)
+        except WireError:
+            return
+        if ev.kind != "byzantine":
+            return
+        for a in ev.agents:
+            ws = self._byzantine.setdefault(a, [])
+            if ev.phase == "start":
+                ws.append([msg.k, None])
+            elif ws and ws[-1][1] is None:
+                ws[-1][1] = msg.k
 
     # ------------------------------------------------------------------ per tick
     def rows(self) -> list[dict]:
@@ -200,9 +221,26 @@ class MetricsCollector:
         if self._fusion:
             s["fusion"] = self.fusion_report()
         s["credibility"] = self.credibility([r["k"] for r in scored])
+        s.update(self.resilience())
         if extra:
             s.update(extra)
         return s
+
+    def resilience(self) -> dict:
+        """``suspicion`` (where estimators report whom they discarded) and ``robustness`` (with W-MSR)."""
+        from .suspicion import attack_ticks, robustness_report, suspicion_report
+
+        out: dict = {}
+        links = {k: t.links for k, t in self._ticks.items()}
+        suspected = {k: {i: aux["suspected"] for i, aux in by.items() if "suspected" in aux}
+                     for k, by in self._eps.items()}
+        suspected = {k: by for k, by in suspected.items() if by}
+        if suspected:
+            attacks = attack_ticks({a: [tuple(w) for w in ws] for a, ws in self._byzantine.items()}, self.ticks)
+            out["suspicion"] = suspicion_report(suspected, links, attacks)
+        if self.resilient_f > 0 and links:
+            out["robustness"] = robustness_report(links, self.resilient_f)
+        return out
 
     def credibility(self, scored: list[int]) -> dict:
         """NEES/ANEES, COIN and the efficiency against the centralized reference

@@ -572,11 +572,17 @@ def test_a_byzantine_sensor_is_contained_by_the_gate_and_w_msr(tmp_path, fault_f
     """With resilient_f = 1 every Byzantine mode, at the hub (agent 3) or at the edge, from early or late on,
     keeps the honest sensors' worst per-node RMSE within 1.5 × the fault-free run's."""
     events = [{"kind": "byzantine", "targets": f"agents:{node}", "mode": mode, "start": start}]
-    _inproc(tmp_path, "gu_hu_normal.toml", events, **{"run.ticks": 250, "estimator.resilient_f": 1})
+    s, _ = _inproc(tmp_path, "gu_hu_normal.toml", events, **{"run.ticks": 250, "estimator.resilient_f": 1})
     got = _per_node_rmse(tmp_path)
     honest = [i for i in range(len(got)) if i != node]
     ratio = max(got[honest]) / max(fault_free_f1[honest])
     assert ratio <= 1.5, (mode, node, start, ratio)
+    # suspicion as an output: a majority of its neighbours discards it soon (NaN never reaches the estimators:
+    # the bus drops it), and honest sensors are rarely suspected
+    seen = s["suspicion"]["attackers"][str(node)]
+    if mode != "nan":
+        assert seen["detected_tick"] is not None and seen["latency_ticks"] <= 30, seen
+    assert s["suspicion"]["false_suspicion_rate"] <= 0.01
 
 
 def test_the_gate_rarely_suspects_an_honest_sensor():
@@ -586,6 +592,8 @@ def test_the_gate_rarely_suspects_an_honest_sensor():
 
     for name in ("gu_hu_normal.toml", "gu_hu_intelligent.toml"):
         _, sc = _scenario(name, [], **{"run.ticks": 200, "estimator.resilient_f": 1})
-        _, roles, _ = run_inproc(sc)
+        metrics, roles, _ = run_inproc(sc)
         suspicions = sum(r.est.suspicions for r in roles.sensors)
         assert suspicions <= 0.01 * 200 * len(roles.sensors), (name, suspicions)
+        s = metrics.summary()["suspicion"]
+        assert s["false_suspicion_rate"] <= 0.01 and s["attackers"] == {}, (name, s)

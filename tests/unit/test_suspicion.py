@@ -1,0 +1,32 @@
+"""Who suspected whom, scored against the Byzantine windows (flocktrack/record/suspicion.py)."""
+
+import numpy as np
+
+from flocktrack.record.suspicion import attack_ticks, robustness_report, suspicion_report
+
+# a path 0 - 1 - 2 - 3 and 2 - 4: node i hears the nodes in LINKS[i]
+LINKS = ((1,), (0, 2), (1, 3, 4), (2,), (2,))
+
+
+def test_detection_latency_discarded_share_and_false_suspicions():
+    attacks = attack_ticks({2: [(3, 6)]}, ticks=10)
+    assert attacks == {2: {3, 4, 5}}
+    sus = {k: {i: np.array([]) for i in range(5)} for k in range(10)}
+    sus[1][0] = np.array([1.0])                       # an honest node suspected, before the attack
+    for i in (1, 3):
+        sus[4][i] = np.array([2.0])                   # tick 4: 2 of its 3 neighbours discard it
+    sus[5][1] = np.array([2.0])                       # tick 5: 1 of 3
+    links = {k: LINKS for k in range(10)}
+    r = suspicion_report(sus, links, attacks)
+    assert r["false_suspicions"] == 1 and r["node_ticks"] == 47          # 50 node-ticks less node 2's 3
+    a = r["attackers"]["2"]
+    assert (a["start"], a["detected_tick"], a["latency_ticks"]) == (3, 4, 1)
+    assert a["discarded_share"] == 3 / 9
+
+
+def test_a_graph_with_a_sensor_below_2f_plus_1_neighbours_is_not_robust_enough():
+    full = tuple(tuple(j for j in range(5) if j != i) for i in range(5))
+    r = robustness_report({0: full, 1: LINKS, 2: full, 3: LINKS}, f=1)
+    assert (r["required_r"], r["ticks_not_robust"], r["first_tick"]) == (3, 2, 1)
+    assert robustness_report({0: full}, f=1)["ticks_not_robust"] == 0
+    assert robustness_report({0: full}, f=2)["ticks_not_robust"] == 1     # 4 neighbours, 5 needed
