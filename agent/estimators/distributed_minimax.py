@@ -106,7 +106,7 @@ class DistributedMinimax(Estimator):
         good = valid_inbox(from_neighbours, self.payload_shapes())
         self.dropped += len(allowed) - len(good)
         if self.gate is not None:
-            lying = self.gate.suspects(chi, good, self._x)
+            lying = self.gate.suspects(chi, good, self._x, r)
             if lying:
                 self.suspected.update(lying)
                 self.suspicions += len(lying)

@@ -45,3 +45,23 @@ def test_the_false_alarm_rate_is_the_stated_one():
         own, other = (_payload(rng.multivariate_normal(np.zeros(2), R)) for _ in range(2))
         alarms += len(gate.suspects(own, {1: other}, x))
     assert 0.005 < alarms / 4000 < 0.02
+
+
+def test_a_small_steady_lie_is_caught_by_the_running_residual_and_the_truth_is_not():
+    """A neighbour whose measurements are biased by 0.75 σ of the noise passes nearly every single test, but its
+    running residual gives it away within a few hundred ticks and keeps it caught; an honest one's does not
+    (2 000 ticks)."""
+    rng = np.random.default_rng(3)
+    x = np.zeros(4)
+    for bias, ticks, caught in ((np.array([0.15, 0.15]), 400, True), (np.zeros(2), 2000, False)):
+        gate = InformationGate(C, R_INV, S_INV)
+        seen = []
+        for _ in range(ticks):
+            own = _payload(rng.multivariate_normal(np.zeros(2), R))
+            other = _payload(rng.multivariate_normal(np.zeros(2), R) + bias)
+            seen.append(gate.suspects(own, {1: other}, x, r=0) == [1])
+            assert gate.suspects(own, {1: other}, x, r=1) == ([1] if seen[-1] else [])   # for the whole tick
+        assert any(seen) is caught, (bias, sum(seen))
+        if caught:
+            after = seen[seen.index(True) + 50:]
+            assert sum(after) >= 0.9 * len(after)        # and stays caught
