@@ -26,7 +26,8 @@ TAIL_MAX_S = 0.020
 
 def role_budget(sc, mode: str, role: str, *, depth: int = 0) -> WaitBudget:
     """How long each wait may last (:class:`agent.runner.WaitBudget`). Lockstep waits long (only dead
-    processes miss it), an outer wait (``depth``: :attr:`Role.wait_depth`) longer than the waits inside it. Realtime shares the period T / speed out like a radio slot schedule: a tail of
+    processes miss it), an outer wait (``depth``: :attr:`Role.wait_depth`) longer than the waits inside it.
+    Realtime shares the period T / speed out like a radio slot schedule: a tail of
     min(2 T / speed / (R + 3), ``TAIL_MAX_S``) is kept at its end for the estimates and states, the rest is
     R + 1 slots for the R exchange rounds — a sensor's round r is due r + 2 slots after it began the tick
     (round 0 has two, for the spread of the moments the neighbours begin; a round that closes early leaves
@@ -84,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
         role, name = build_target(sc), "target/0"
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)
     try:
-        return profiled(name, lambda: drive(role, bus, name, role_budget(sc, mode, args.role, depth=role.wait_depth), stop))
+        budget = role_budget(sc, mode, args.role, depth=role.wait_depth)
+        return profiled(name, lambda: drive(role, bus, name, budget, stop))
     finally:
         bus.close()
 

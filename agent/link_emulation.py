@@ -105,6 +105,7 @@ class LinkEmulator:
             return
         if ev.phase == "heal":
             self.faults.pop(ev.id, None)
+            self._began.pop(ev.id, None)
             self._stale.clear()
             return
         if ev.kind in SENDER_KINDS and self.i not in ev.agents:

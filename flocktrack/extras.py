@@ -5,7 +5,8 @@ SDP design of the min-energy H∞ filters, the sum-of-norms reference solver), `
 matplotlib (the sweeps' PNGs, the dashboard's static picture), ``flocktrack[fusion]`` numba (the
 compiled kernels of the sum-of-norms fusion: the ``carrillo_*`` scenarios), ``flocktrack[analysis]`` pandas
 and pyarrow (a run as tables: ``flocktrack.load``, ``flocktrack export``), ``flocktrack[dask]`` distributed
-(sweeps on a Dask cluster: ``flocktrack sweep --executor dask``), ``flocktrack[all]`` all five.
+and bokeh (sweeps on a Dask cluster, with its dashboard: ``flocktrack sweep --executor dask``),
+``flocktrack[all]`` all five.
 """
 
 from __future__ import annotations

@@ -10,15 +10,15 @@ Each node i runs, at every tick t (b = ctx.b is the visibility weight; the paper
 
 N χᵢ approximates Σⱼ χⱼ (17); the consensus is re-initialised from the local χ every tick, and
 η = consensus_rate(δ_max) is the same at every node so the network sum of χ is preserved.
+With C, R, S equal at every node (and equal b), χ¹ and χ³ are identical everywhere, so every
+node's P and Σ equal the centralized ones (:class:`agent.estimators.minimax.CentralizedMinimax`)
+and, when all payloads arrive, **the mean of the node estimates equals the centralized estimate
+exactly for any number of rounds** (the update is affine in x̂ᵢ and χ²ᵢ).
 
 ``resilient_f`` = f > 0 makes (18b) resilient to Byzantine neighbours: each round, the payloads that are
 inconsistent with the node's own are discarded (:class:`agent.estimators.information_gate.InformationGate`),
 and W-MSR trims what is left (:func:`agent.estimators.consensus.trimmed_disagreement`). The neighbours a
 node discarded in a tick are published beside its estimate (``report()`` → ``aux["suspected"]``).
-With C, R, S equal at every node (and equal b), χ¹ and χ³ are identical everywhere, so every
-node's P and Σ equal the centralized ones (:class:`agent.estimators.minimax.CentralizedMinimax`)
-and, when all payloads arrive, **the mean of the node estimates equals the centralized estimate
-exactly for any number of rounds** (the update is affine in x̂ᵢ and χ²ᵢ).
 
 S → ∞ (``S=None``) gives the distributed Kalman filter (:class:`DistributedKalman`).
 

@@ -84,11 +84,11 @@ class InformationGate:
                 out.append(j)          # not the information matrices of honest (18a) mixtures
                 continue
             du = self.residual(p, x) - u_own
-            if float(du @ self._S_inv @ du) > self.threshold:
-                out.append(j)          # a measurement that lies
-            elif r == 0 and beta > 1e-9 and abs(beta - beta_own) <= 1e-9 * beta and self._runs_off(j, du / np.sqrt(beta)):
+            lies = float(du @ self._S_inv @ du) > self.threshold     # a measurement that lies
+            if (not lies and r == 0 and beta > 1e-9 and abs(beta - beta_own) <= 1e-9 * beta
+                    and self._runs_off(j, du / np.sqrt(beta))):
                 self.drifting.add(j)   # a measurement that lies a little, every tick
-            if j in self.drifting and (not out or out[-1] != j):
+            if lies or j in self.drifting:
                 out.append(j)
         return out
 

@@ -144,7 +144,7 @@ class DaskExecutor:
         return f"{where} ({self.n_workers} workers, {self.slots} threads)"
 
     def info(self) -> dict:
-        return {"kind": "dask", "scheduler": self.address, "workers": self.slots,
+        return {"kind": "dask", "scheduler": self.address, "workers": self.n_workers, "threads": self.slots,
                 "retries": self.retries, "fetch_recordings": self.fetch, "worker_dir": self.worker_dir}
 
     def run(self, tasks: list[dict], on_result: Callable[[dict], None]) -> None:

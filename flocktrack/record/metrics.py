@@ -236,7 +236,7 @@ class MetricsCollector:
                      for k, by in self._eps.items()}
         suspected = {k: by for k, by in suspected.items() if by}
         if suspected:
-            attacks = attack_ticks({a: [tuple(w) for w in ws] for a, ws in self._byzantine.items()}, self.ticks)
+            attacks = attack_ticks(self._byzantine, self.ticks)
             out["suspicion"] = suspicion_report(suspected, links, attacks)
         if self.resilient_f > 0 and links:
             out["robustness"] = robustness_report(links, self.resilient_f)

@@ -26,7 +26,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
-def attack_ticks(windows: Mapping[int, list[tuple[int, int | None]]], ticks: int) -> dict[int, set[int]]:
+def attack_ticks(windows: Mapping[int, list], ticks: int) -> dict[int, set[int]]:
     """Agent → the ticks it was Byzantine, from its (start, heal) windows (heal None: to the end)."""
     return {a: {k for s, h in ws for k in range(s, ticks if h is None else h)} for a, ws in windows.items()}
 
