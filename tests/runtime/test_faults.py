@@ -566,12 +566,18 @@ def fault_free_f1(tmp_path_factory):
     return _per_node_rmse(out)
 
 
-@pytest.mark.parametrize("mode,node,start", [(m, 3, 50) for m in ("nan", "huge", "stale", "bias", "drift", "noise", "mimic")]
-                         + [("huge", 0, 150), ("stale", 7, 150), ("bias", 7, 20), ("mimic", 0, 100)])
-def test_a_byzantine_sensor_is_contained_by_the_gate_and_w_msr(tmp_path, fault_free_f1, mode, node, start):
+@pytest.mark.parametrize("mode,node,start,magnitude",
+                         [(m, 3, 50, None) for m in ("nan", "huge", "stale", "bias", "drift", "noise", "mimic")]
+                         + [("huge", 0, 150, None), ("stale", 7, 150, None), ("bias", 7, 20, None),
+                            ("mimic", 0, 100, None),
+                            # lies near what one test resolves: half the noise's σ, and less
+                            ("mimic", 3, 50, 1.0), ("mimic", 7, 0, 0.5), ("bias", 3, 50, 0.5), ("drift", 3, 50, 5.0)])
+def test_a_byzantine_sensor_is_contained_by_the_gate_and_w_msr(tmp_path, fault_free_f1, mode, node, start, magnitude):
     """With resilient_f = 1 every Byzantine mode, at the hub (agent 3) or at the edge, from early or late on,
-    keeps the honest sensors' worst per-node RMSE within 1.5 × the fault-free run's."""
+    large or small, keeps the honest sensors' worst per-node RMSE within 1.5 × the fault-free run's."""
     events = [{"kind": "byzantine", "targets": f"agents:{node}", "mode": mode, "start": start}]
+    if magnitude is not None:
+        events[0]["magnitude"] = magnitude
     s, _ = _inproc(tmp_path, "gu_hu_normal.toml", events, **{"run.ticks": 250, "estimator.resilient_f": 1})
     got = _per_node_rmse(tmp_path)
     honest = [i for i in range(len(got)) if i != node]
@@ -580,20 +586,21 @@ def test_a_byzantine_sensor_is_contained_by_the_gate_and_w_msr(tmp_path, fault_f
     # suspicion as an output: a majority of its neighbours discards it soon (NaN never reaches the estimators:
     # the bus drops it), and honest sensors are rarely suspected
     seen = s["suspicion"]["attackers"][str(node)]
-    if mode != "nan":
-        assert seen["detected_tick"] is not None and seen["latency_ticks"] <= 30, seen
+    if mode != "nan":      # a small lie takes longer to tell from the noise
+        assert seen["detected_tick"] is not None and seen["latency_ticks"] <= (30 if magnitude is None else 60), seen
     assert s["suspicion"]["false_suspicion_rate"] <= 0.01
 
 
 def test_the_gate_rarely_suspects_an_honest_sensor():
-    """Fault-free, the consistency gate discards at most 1 % of the node-ticks' neighbour payloads, also on the
-    manoeuvring intelligent target (its prediction errors are common to the flock and cancel)."""
+    """Fault-free, the consistency gate discards at most 1 % of the payloads a sensor takes in (a neighbour's
+    payload of each round) and an honest neighbour in at most 1 % of the node-ticks, also on the manoeuvring
+    intelligent target (its prediction errors are common to the flock and cancel) and in the flocking demo."""
     from flocktrack.engine.inproc import run_inproc
 
-    for name in ("gu_hu_normal.toml", "gu_hu_intelligent.toml"):
+    for name in ("gu_hu_normal.toml", "gu_hu_intelligent.toml", "demo.toml"):
         _, sc = _scenario(name, [], **{"run.ticks": 200, "estimator.resilient_f": 1})
         metrics, roles, _ = run_inproc(sc)
         suspicions = sum(r.est.suspicions for r in roles.sensors)
-        assert suspicions <= 0.01 * 200 * len(roles.sensors), (name, suspicions)
+        assert suspicions <= 0.01 * 200 * len(roles.sensors) * sc.estimator.rounds, (name, suspicions)
         s = metrics.summary()["suspicion"]
         assert s["false_suspicion_rate"] <= 0.01 and s["attackers"] == {}, (name, s)

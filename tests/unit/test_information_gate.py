@@ -65,3 +65,25 @@ def test_a_small_steady_lie_is_caught_by_the_running_residual_and_the_truth_is_n
         if caught:
             after = seen[seen.index(True) + 50:]
             assert sum(after) >= 0.9 * len(after)        # and stays caught
+
+
+def test_a_lie_told_in_every_round_is_caught_by_the_later_rounds_agreement():
+    """In later rounds honest payloads are mixtures that agree closely; a neighbour that replays one with its
+    estimate moved by 0.1 (half the noise's σ: invisible to the round-0 tests) is caught within ~30 ticks,
+    and two honest mixtures are not told apart in 2 000 ticks."""
+    rng = np.random.default_rng(5)
+    x, delta = np.zeros(4), np.array([0.1, 0.1, 0.0, 0.0])
+    w_own, w_honest = np.array([0.3, 0.25, 0.25, 0.2]), np.array([0.2, 0.3, 0.25, 0.25])
+    for lie, ticks in ((True, 120), (False, 2000)):
+        gate = InformationGate(C, R_INV, S_INV)
+        caught = []
+        for _ in range(ticks):
+            raw = [_payload(rng.multivariate_normal(np.zeros(2), R)) for _ in range(4)]
+            own, other = _mix(raw, w_own), _mix(raw, w_honest)
+            if lie:
+                other = {**other, "chi2": other["chi2"] + other["chi1"] @ delta}
+            caught.append(gate.suspects(own, {1: other}, x, r=3) == [1])
+        if lie:
+            assert caught.index(True) <= 40 and all(caught[caught.index(True):])
+        else:
+            assert not any(caught)
