@@ -591,6 +591,46 @@ def test_a_byzantine_sensor_is_contained_by_the_gate_and_w_msr(tmp_path, fault_f
     assert s["suspicion"]["false_suspicion_rate"] <= 0.01
 
 
+#: Gu & Hu's normal target with a link range that spans the flock: the complete graph on 10 sensors, 5-robust
+DENSE = {"run.ticks": 250, "estimator.resilient_f": 2, "topology.range": 40.0}
+
+
+@pytest.fixture(scope="module")
+def fault_free_f2_dense(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fault_free_f2")
+    s, _ = _inproc(out, "gu_hu_normal.toml", [], **DENSE)
+    assert s["robustness"]["ticks_robust"] == 250 and s["suspicion"]["false_suspicion_rate"] <= 0.01
+    return _per_node_rmse(out)
+
+
+@pytest.mark.parametrize("mode,nodes,magnitude", [("bias", "3,5", None), ("stale", "0,7", None),
+                                                  ("drift", "0,7", None), ("mimic", "3,5", 1.0)])
+def test_two_colluding_sensors_are_contained_on_a_graph_verified_5_robust(tmp_path, fault_free_f2_dense, mode,
+                                                                          nodes, magnitude):
+    """With resilient_f = 2 on a graph the run verifies (2f + 1)-robust at every tick, two sensors lying the same
+    way from tick 50 keep the honest sensors' worst per-node RMSE within 2 × the fault-free run's."""
+    events = [{"kind": "byzantine", "targets": f"agents:{nodes}", "mode": mode, "start": 50}]
+    if magnitude is not None:
+        events[0]["magnitude"] = magnitude
+    s, _ = _inproc(tmp_path, "gu_hu_normal.toml", events, **DENSE)
+    assert s["robustness"] == {"f": 2, "required_r": 5, "ticks_robust": 250, "ticks_not_robust": 0,
+                               "ticks_unknown": 0, "first_tick": None}
+    got = _per_node_rmse(tmp_path)
+    bad = [int(a) for a in nodes.split(",")]
+    honest = [i for i in range(len(got)) if i not in bad]
+    ratio = max(got[honest]) / max(fault_free_f2_dense[honest])
+    assert ratio <= 2.0, (mode, nodes, ratio)
+    assert all(s["suspicion"]["attackers"][str(a)]["detected_tick"] is not None for a in bad), s["suspicion"]
+
+
+def test_a_graph_too_sparse_for_f_is_reported_with_its_first_tick(tmp_path, caplog):
+    """gu_hu_normal's range graph has sensors with 4 neighbours or fewer: never the 5-robust f = 2 needs."""
+    s, _ = _inproc(tmp_path, "gu_hu_normal.toml", [], **{"run.ticks": 40, "estimator.resilient_f": 2})
+    r = s["robustness"]
+    assert r["ticks_not_robust"] == 40 and r["first_tick"] == 0 and r["ticks_robust"] == 0
+    assert "not 5-robust" in caplog.text
+
+
 def test_the_gate_rarely_suspects_an_honest_sensor():
     """Fault-free, the consistency gate discards at most 1 % of the payloads a sensor takes in (a neighbour's
     payload of each round) and an honest neighbour in at most 1 % of the node-ticks, also on the manoeuvring

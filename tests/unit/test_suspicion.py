@@ -30,3 +30,16 @@ def test_a_graph_with_a_sensor_below_2f_plus_1_neighbours_is_not_robust_enough()
     assert (r["required_r"], r["ticks_not_robust"], r["first_tick"]) == (3, 2, 1)
     assert robustness_report({0: full}, f=1)["ticks_not_robust"] == 0
     assert robustness_report({0: full}, f=2)["ticks_not_robust"] == 1     # 4 neighbours, 5 needed
+
+
+def test_robustness_is_decided_exactly_not_only_by_the_degrees():
+    """Two 5-cliques joined by a perfect matching: every sensor has 5 neighbours (the degree test passes for
+    f = 2), but no sensor has more than one neighbour outside its own clique: the graph is only 1-robust, not
+    the 5-robust W-MSR with f = 2 needs; the complete graph on 10 is."""
+    links = [[j for j in range(5) if j != i] + [i + 5] for i in range(5)]
+    links += [[j for j in range(5, 10) if j != i] + [i - 5] for i in range(5, 10)]
+    r = robustness_report({0: tuple(map(tuple, links))}, f=2)
+    assert (r["ticks_not_robust"], r["ticks_robust"], r["first_tick"]) == (1, 0, 0)
+    full = tuple(tuple(j for j in range(10) if j != i) for i in range(10))
+    r = robustness_report({0: full, 1: full}, f=2)
+    assert (r["ticks_robust"], r["ticks_not_robust"], r["ticks_unknown"]) == (2, 0, 0)
