@@ -4,6 +4,7 @@ recording (time slider).
 
 * :mod:`dashboards.state` — a pure model of what is shown, fed message by message (testable alone);
 * :mod:`dashboards.plots` — data → figures (batched scene arrays, uPlot panels, a static PNG);
+* :mod:`dashboards.nees` — the NEES of the node estimates and the χ² band of its mean;
 * :mod:`dashboards.live`  — the live loop (bus → state → page) and the replay's;
 * :mod:`dashboards.ui`    — the page: the Viser server and its panels (:mod:`~dashboards.scene`,
   :mod:`~dashboards.camera`, :mod:`~dashboards.plot_panel`, :mod:`~dashboards.control_panel`, each tab's

@@ -2,7 +2,8 @@
 
 * :func:`scene_arrays` turns a :class:`~dashboards.state.Snapshot` into a handful of batched arrays
   (one point cloud for all sensors, one for all node estimates, one line-segment set for all links,
-  one for all range circles, …) so the live scene costs a few messages per update whatever the flock size;
+  one for all suspicions, one for all range circles, …) so the live scene costs a few messages per update
+  whatever the flock size;
 * :func:`uplot_panels` turns series into the data and series options of the live uPlot panels;
 * :func:`save_static_png` draws the same panels plus a top view of the flock with matplotlib
   (the only function here that touches a file).
@@ -58,6 +59,16 @@ def link_segments(positions: np.ndarray, edges: np.ndarray) -> np.ndarray:
     seg = np.stack([positions[edges[:, 0]], positions[edges[:, 1]]], axis=1)
     ok = np.all(np.isfinite(seg), axis=(1, 2))
     return seg[ok].astype(np.float32)
+
+
+def suspicion_segments(positions: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(S, 2, 3) float32: one segment per suspicion (i, j) — "i discarded j's payloads this tick" — from the
+    suspecting sensor i (``[:, 0]``) to its suspect j (``[:, 1]``); pairs with an id out of range or an
+    unknown end are left out."""
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+    n = len(positions)
+    pairs = pairs[np.all((pairs >= 0) & (pairs < n), axis=1)]
+    return link_segments(positions, pairs)
 
 
 _CIRCLE_CACHE: dict[int, np.ndarray] = {}
@@ -131,6 +142,7 @@ class SceneArrays:
     trail: np.ndarray                  # (L−1, 2, 3) float32
     target: np.ndarray | None          # (3,)
     fusion: np.ndarray | None          # (3,)
+    suspicions: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.float32))  # (S, 2, 3) i → j
     selected: int | None = None
     selected_pos: np.ndarray | None = None
     selected_est: np.ndarray | None = None
@@ -153,7 +165,8 @@ def scene_arrays(snap: Snapshot, *, selected: int | None = None, error_scale: fl
     out = SceneArrays(sensor_points=pos[known].astype(np.float32), sensor_colors=colors[known], sensor_ids=ids,
                       estimate_points=snap.est_pos[est_ok].astype(np.float32), estimate_colors=est_cols,
                       links=link_segments(pos, snap.edges), circles=circles, trail=polyline_segments(snap.trail),
-                      target=snap.truth_pos, fusion=snap.fusion_pos)
+                      target=snap.truth_pos, fusion=snap.fusion_pos,
+                      suspicions=suspicion_segments(pos, snap.suspicions))
     if selected is not None and 0 <= selected < snap.n:
         sel = selection_arrays(snap, selected, nsig=nsig)
         out.selected, out.selected_pos, out.selected_est = selected, sel.pos, sel.est
@@ -331,14 +344,60 @@ def drawable(data, series) -> tuple[np.ndarray, ...]:
     return (np.r_[x[0] - dx, x], *(np.r_[a, y] for a, y in zip(anchor, ys)))
 
 
+def _positive(y) -> np.ndarray:
+    """``y`` with every value that is not > 0 a gap (NaN): what a log-scale axis can draw."""
+    y = np.asarray(y, float)
+    with np.errstate(invalid="ignore"):
+        return np.where(y > 0, y, np.nan)
+
+
+def has_values(y) -> bool:
+    """Whether the column ``y`` (None: absent) holds a finite value."""
+    return bool(y is not None and np.isfinite(np.asarray(y, float)).any())
+
+
+#: a logarithmic y scale (uPlot's ``distr`` 3). uPlot draws a value a log scale cannot show (≤ 0, and NaN — the
+#: only gap a typed array can carry) at its ``clamp``, by default a tenth of the scale's minimum: every gap
+#: became a dive to the bottom of the panel (measured in Chromium on Viser 1.1.1's uPlot). A clamp that is
+#: itself no value of the scale (−1: log₁₀ of it is NaN) leaves them out — the line joins the points either
+#: side, as it does on a linear scale.
+LOG_SCALE = {"distr": 3, "log": 10, "clamp": -1.0}
+
+
+def nees_panel(series: dict[str, np.ndarray], selected: int | None = None) -> PanelSpec:
+    """The network NEES (the mean of the nodes' εᵢ), the 95 % χ² interval of that mean as two lines, and
+    the selected sensor's own εᵢ, on a log scale (a NEES spans decades: 0.1 … 1e3)."""
+    k = np.asarray(series["k"], float)
+    data = [k, _positive(series["nees"]), _positive(series["nees_lo"]), _positive(series["nees_hi"])]
+    sers = [_x_series(), _line("NEES", "#1f77b4", 1.8), _line("95 % lo", "#2ca02c", 1.0, dash=[5, 4]),
+            _line("95 % hi", "#d62728", 1.0, dash=[5, 4])]
+    own = series.get("nees_node")
+    if selected is not None and own is not None and np.ndim(own) == 2 and 0 <= selected < np.shape(own)[1]:
+        data.append(_positive(np.asarray(own, float)[:, selected]))
+        sers.append(_line(f"ε{selected}", "#ff7f0e", 1.0))
+    axes = _axes("NEES (log)")
+    axes[1]["ticks"] = {"show": False}     # (a log axis's minor tick marks crowd into a black bar at this size)
+    return PanelSpec("nees", "NEES ε = e′P⁻¹e (mean over nodes) and its 95 % χ² band", tuple(data), tuple(sers),
+                     {**_X_SCALE, "y": dict(LOG_SCALE)}, axes)
+
+
+def suspicion_panel(series: dict[str, np.ndarray]) -> PanelSpec:
+    """The number of suspicions (i, j) — i discarded j's payloads — per tick."""
+    return PanelSpec("suspicions", "Suspicions: pairs (i suspects j) per tick", (series["k"], series["suspected"]),
+                     (_x_series(), _line("suspicions", "#d62728", 1.5)), _X_SCALE, _axes("pairs"))
+
+
 def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = None, *,
                  max_node_series: int = 10, has_lower: bool | None = None,
-                 has_fusion: bool | None = None) -> list[PanelSpec]:
+                 has_fusion: bool | None = None, has_nees: bool | None = None,
+                 has_suspicion: bool | None = None) -> list[PanelSpec]:
     """The live plot panels. Per-node errors are drawn one line per node up to ``max_node_series``
     nodes; above that as the median and maximum over nodes plus the selected node. Each panel's data
     went through :func:`drawable`. ``has_lower`` / ``has_fusion``: whether the TMSEE lower bound / the
-    fusion error have a line (None: whether the series hold a value of it) — the live UI fixes them so
-    that a panel's set of lines does not change as the window slides."""
+    fusion error have a line, ``has_nees`` / ``has_suspicion``: whether the NEES panel (a run whose
+    estimates carry covariances) / the suspicions panel (a resilient consensus) is shown (None: whether
+    the series hold a value of it) — the live UI fixes them so that the panels and their lines do not
+    change as the window slides."""
     k = np.asarray(series["k"], float)
     err = np.asarray(series["err"], float).reshape(len(k), -1)
     panels: list[PanelSpec] = []
@@ -405,6 +464,14 @@ def uplot_panels(series: dict[str, np.ndarray], n: int, selected: int | None = N
                             (_x_series(), _line("msg/s", "#1f77b4", 1.5), _line("dropped/s", "#d62728", 1.5,
                                                                                    scale="drop")),
                             {**_X_SCALE, "drop": {"auto": True}}, _axes("msg/s", right="drop")))
+
+    # 6. consistency: the NEES and its χ² band (estimates with covariances only)
+    if (has_values(series.get("nees")) if has_nees is None else has_nees) and "nees" in series:
+        panels.append(nees_panel(series, selected))
+
+    # 7. Byzantine suspicion (a resilient consensus only)
+    if (has_values(series.get("suspected")) if has_suspicion is None else has_suspicion) and "suspected" in series:
+        panels.append(suspicion_panel(series))
     for p in panels:
         p.data = drawable(p.data, p.series)
     return panels
@@ -424,15 +491,18 @@ def decimate(series: dict[str, np.ndarray], max_points: int) -> dict[str, np.nda
 
 def save_static_png(path, series: dict[str, np.ndarray], snap: Snapshot | None, n: int, *, title: str = "",
                     link_range: float = math.inf, selected: int | None = None, max_node_series: int = 10) -> None:
-    """A static figure of the dashboard: top view of the flock at the snapshot's tick and the five panels."""
+    """A static figure of the dashboard: top view of the flock at the snapshot's tick and the panels of
+    :func:`uplot_panels` (the NEES panel on a log scale)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     panels = uplot_panels(series, n, selected, max_node_series=max_node_series)
-    fig = plt.figure(figsize=(15, 8.5), dpi=110)
-    gs = fig.add_gridspec(3, 3, width_ratios=[1.25, 1, 1])
+    rows = max(3, math.ceil((len(panels) + 1) / 2))     # two panels a row, and the numbers' slot
+    fig = plt.figure(figsize=(15, 8.5 * rows / 3), dpi=110)
+    gs = fig.add_gridspec(rows, 3, width_ratios=[1.25, 1, 1])
     ax0 = fig.add_subplot(gs[:, 0])
     if snap is not None:
         sa = scene_arrays(snap, selected=selected, error_scale=auto_error_scale(series["err"][-200:]),
@@ -441,6 +511,8 @@ def save_static_png(path, series: dict[str, np.ndarray], snap: Snapshot | None, 
             ax0.plot(seg[:, 0], seg[:, 1], color="#cfd8e3", lw=0.5, zorder=1)
         for seg in sa.links:
             ax0.plot(seg[:, 0], seg[:, 1], color="#4a6fa5", lw=0.8, alpha=0.7, zorder=2)
+        for seg in sa.suspicions:
+            ax0.plot(seg[:, 0], seg[:, 1], color="#e01e28", lw=1.8, zorder=3)
         if len(sa.trail):
             tr = np.concatenate([sa.trail[:, 0], sa.trail[-1:, 1]])
             ax0.plot(tr[:, 0], tr[:, 1], color="#d62728", lw=1.2, alpha=0.6, zorder=3)
@@ -460,7 +532,7 @@ def save_static_png(path, series: dict[str, np.ndarray], snap: Snapshot | None, 
         ax0.legend(loc="upper left", fontsize=8)
     ax0.set_aspect("equal", adjustable="datalim")
     ax0.grid(alpha=0.3)
-    slots = [gs[0, 1], gs[0, 2], gs[1, 1], gs[1, 2], gs[2, 1]]
+    slots = [gs[r, c] for r in range(rows) for c in (1, 2)]
     for p, slot in zip(panels, slots):
         ax = fig.add_subplot(slot)
         x = p.data[0]
@@ -472,14 +544,19 @@ def save_static_png(path, series: dict[str, np.ndarray], snap: Snapshot | None, 
                 target_ax = right
             target_ax.plot(x, y, color=s.get("stroke", "k"), lw=s.get("width", 1.0) * 0.8,
                            ls="--" if s.get("dash") else "-", label=s.get("label"))
+        if p.scales.get("y", {}).get("distr") == 3 and np.isfinite(np.asarray(p.data[1:], float)).any():
+            ax.set_yscale("log")
+            for set_format in (ax.yaxis.set_major_formatter, ax.yaxis.set_minor_formatter):
+                set_format(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.set_title(p.title, fontsize=9)
         ax.grid(alpha=0.3)
         if len(p.series) <= 8:
             ax.legend(fontsize=7, loc="upper right")
-    ax = fig.add_subplot(gs[2, 2])
+    ax = fig.add_subplot(slots[len(panels)])
     ax.axis("off")
     if len(series["k"]):
-        last = {c: series[c][-1] for c in ("k", "rmse", "lambda2", "msg_rate", "drop_rate")}
+        last = {c: series[c][-1] for c in ("k", "rmse", "lambda2", "msg_rate", "drop_rate", "nees", "suspected")
+                if c in series and np.isfinite(series[c][-1])}
         ax.text(0.0, 0.9, "\n".join(f"{c}: {v:.4g}" for c, v in last.items()), va="top", family="monospace")
     if title:
         fig.suptitle(title)

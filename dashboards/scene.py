@@ -1,5 +1,6 @@
-"""The shared 3-D scene every tab sees: the ground grid, the range circles, the links, the target's trail,
-the sensors and their estimates, the target and the fusion estimate.
+"""The shared 3-D scene every tab sees: the ground grid, the range circles, the links, the suspicions (red:
+from a sensor to the neighbour whose payloads it discarded this tick), the target's trail, the sensors and
+their estimates, the target and the fusion estimate.
 
 A redraw is a handful of batched messages (one point cloud for all sensors, one line-segment set for all
 links, …) made from a snapshot by :func:`dashboards.plots.scene_arrays`. What a tab selects is drawn on
@@ -56,6 +57,8 @@ class FlockScene:
                                              thickness_units="screen", visible=False)
         self.h_links = s.add_line_segments("/world/links", zs, (70, 110, 170), thickness=2.0,
                                            thickness_units="screen", visible=False)
+        self.h_suspicions = s.add_line_segments("/world/suspicions", zs, (225, 25, 35), thickness=3.5,
+                                                thickness_units="screen", visible=False)
         self.h_trail = s.add_line_segments("/world/trail", zs, (215, 40, 40), thickness=2.5,
                                            thickness_units="screen", visible=False)
         size = max(0.06 * r, 0.3)
@@ -68,6 +71,8 @@ class FlockScene:
         self.h_fusion = s.add_icosphere("/world/fusion", radius=0.4 * size, color=(148, 103, 189), visible=False,
                                         cast_shadow=False, receive_shadow=False)
         self.marker_size = size
+        #: the suspicions are drawn this much above the links they lie on (no depth fight with them)
+        self.lift = np.array([0.0, 0.0, 0.1 * size], np.float32)
 
     def draw(self, snap: Snapshot, display: DisplaySettings, err_rows: np.ndarray | None = None) -> plots.SceneArrays:
         """Redraw from ``snap`` what ``display`` shows, coloured by own error on ``display``'s scale (0: the
@@ -80,6 +85,7 @@ class FlockScene:
             set_cloud(self.h_sensors, sa.sensor_points, sa.sensor_colors)
             set_cloud(self.h_est, sa.estimate_points, sa.estimate_colors, d.estimates)
             set_segments(self.h_links, sa.links, d.links)
+            set_segments(self.h_suspicions, sa.suspicions + self.lift)
             set_segments(self.h_circles, sa.circles, d.circles)
             set_segments(self.h_trail, sa.trail, d.trail)
             if sa.target is not None:

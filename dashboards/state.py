@@ -31,6 +31,11 @@ Per finalized tick the series hold
 * TMSEE(k) = Σᵢ ‖x̂ᵢ,ₖ − xₖ‖² (full state) and its lower bound where the pre-run design has one;
 * the consensus disagreement √(mean ‖x̂ᵢ − x̄‖²) and the error of the mean estimate;
 * the algebraic connectivity λ₂ of the tick's graph and its number of links;
+* the network NEES: the mean over the nodes of εᵢ = eᵢ′Pᵢ⁻¹eᵢ, eᵢ = x̂ᵢ,ₖ − xₖ against the covariance the
+  node reported for x̂ᵢ,ₖ (the ``P`` of its estimate of tick k − 1), with the 95 % χ² interval of that mean
+  (:mod:`dashboards.nees`), and each node's own εᵢ;
+* the suspicions: how many (i, j) pairs "i discarded j's payloads" the resilient consensus reported
+  (``Estimate.aux["suspected"]``; NaN when no estimate carries the key: resilience off);
 * the message rate and the dropped messages per second (bus drops + missing sensor estimates/states)
   over the last ``rate_window_s`` seconds.
 
@@ -50,6 +55,8 @@ from pathlib import Path
 import numpy as np
 
 from agent.wire import Control, End, Estimate, Message, State, Tick, Truth
+
+from .nees import network_nees
 
 NAN = float("nan")
 
@@ -126,6 +133,8 @@ class Frame:
     cov: dict[int, np.ndarray] = field(default_factory=dict)        #: P of x̂ᵢ,ₖ₊₁ (when the filter has one)
     state_pos: dict[int, np.ndarray] = field(default_factory=dict)  #: position after tick k
     fusion: np.ndarray | None = None
+    suspects: dict[int, np.ndarray] = field(default_factory=dict)  #: whom node i discarded (valid ids only)
+    nees: np.ndarray | None = None      #: (n,) each node's NEES εᵢ at tick k (set when finalized)
     done: bool = False
 
     def expected(self, n: int) -> list[int]:
@@ -163,6 +172,30 @@ class Snapshot:
     trail: np.ndarray              #: (L, 3) the target's recent positions, oldest first
     fusion_pos: np.ndarray | None  #: (3,)
     row: dict                      #: the tick's series row (rmse, λ₂, rates, …) if finalized
+    suspicions: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))  #: (S, 2) i suspects j
+    nees: np.ndarray | None = None  #: (n,) each node's NEES εᵢ (NaN: not scored; None: tick not finalized)
+
+    def suspects_of(self, i: int) -> list[int]:
+        """Whom sensor ``i`` suspected at this tick."""
+        return [int(j) for a, j in self.suspicions if a == i]
+
+
+def valid_suspects(i: int, values, n: int) -> tuple[np.ndarray, int]:
+    """The sensor ids in ``values`` (``Estimate.aux["suspected"]`` of sensor ``i``) that can be suspects:
+    integers in 0 … n − 1 other than ``i``, each once, sorted; and how many values were dropped (not
+    finite, not an integer, out of range, ``i`` itself, a repeat — or everything, when ``values`` is not
+    numeric at all)."""
+    try:
+        a = np.asarray(values)
+    except (TypeError, ValueError, OverflowError):     # (a ragged list)
+        return np.zeros(0, int), 1
+    if a.dtype.kind not in "iuf":                       # text, objects, booleans: nothing to read an id from
+        return np.zeros(0, int), max(a.size, 1)
+    a = a.astype(float).reshape(-1)
+    with np.errstate(all="ignore"):
+        ok = np.isfinite(a) & (a == np.floor(a)) & (a >= 0) & (a < n) & (a != i)
+    ids = np.unique(a[ok]).astype(int)
+    return ids, int(a.size - ids.size)
 
 
 def _pad3(p: np.ndarray) -> np.ndarray:
@@ -258,7 +291,10 @@ class RateMeter:
 # ============================================================================ series
 
 class SeriesBuffer:
-    """Columns of floats appended one row per finalized tick; keeps the last ``max_rows`` (None: all)."""
+    """Columns of floats appended one row per finalized tick, and per-node matrices (rows × n: ``err``, each
+    node's own position error, and ``nees_node``, its own NEES); keeps the last ``max_rows`` (None: all)."""
+
+    MATRICES = ("err", "nees_node")
 
     def __init__(self, columns: list[str], n: int, max_rows: int | None = None):
         self.columns = list(columns)
@@ -266,39 +302,41 @@ class SeriesBuffer:
         self.max_rows = max_rows
         cap = 256
         self._cols = {c: np.full(cap, NAN) for c in self.columns}
-        self._err = np.full((cap, n), NAN)
+        self._mats = {m: np.full((cap, n), NAN) for m in self.MATRICES}
         self._len = 0
 
     def __len__(self) -> int:
         return self._len
 
-    def append(self, row: dict, err: np.ndarray) -> bool:
-        """Append one row; a row whose k is not above the last one is refused (False): the plots need x
-        strictly increasing, and :meth:`arrays` seeks by k."""
+    def append(self, row: dict, err: np.ndarray, nees_node: np.ndarray | None = None) -> bool:
+        """Append one row (``nees_node`` None: NaN); a row whose k is not above the last one is refused
+        (False): the plots need x strictly increasing, and :meth:`arrays` seeks by k."""
         if self._len and not row["k"] > self._cols["k"][self._len - 1]:
             return False
+        mats = self._mats
         if self.max_rows is not None and self._len >= 2 * self.max_rows:  # drop the older half, amortised O(1)
             keep = self.max_rows
-            for c in self.columns:
-                self._cols[c][:keep] = self._cols[c][self._len - keep:self._len]
-            self._err[:keep] = self._err[self._len - keep:self._len]
+            for a in (*self._cols.values(), *mats.values()):
+                a[:keep] = a[self._len - keep:self._len]
             self._len = keep
-        if self._len == len(self._err):
-            cap = 2 * len(self._err)
+        if self._len == len(mats["err"]):
+            cap = 2 * len(mats["err"])
             for c in self.columns:
                 self._cols[c] = np.concatenate([self._cols[c], np.full(cap - len(self._cols[c]), NAN)])
-            self._err = np.concatenate([self._err, np.full((cap - len(self._err), self.n), NAN)])
+            for m in self.MATRICES:
+                mats[m] = np.concatenate([mats[m], np.full((cap - len(mats[m]), self.n), NAN)])
         i = self._len
         for c in self.columns:
             v = row.get(c, NAN)
             self._cols[c][i] = NAN if v is None else v
-        self._err[i] = err
+        mats["err"][i] = err
+        mats["nees_node"][i] = NAN if nees_node is None else nees_node
         self._len += 1
         return True
 
     def arrays(self, upto_k: int | None = None, last: int | None = None) -> dict[str, np.ndarray]:
-        """Copies of the columns (``err``: rows × n), rows with k ≤ ``upto_k``, the last ``last`` of them
-        (and never more than ``max_rows``)."""
+        """Copies of the columns and of the matrices (rows × n), rows with k ≤ ``upto_k``, the last ``last``
+        of them (and never more than ``max_rows``)."""
         end = self._len
         if upto_k is not None:
             end = int(np.searchsorted(self._cols["k"][:self._len], upto_k, side="right"))
@@ -306,12 +344,14 @@ class SeriesBuffer:
         limit = min(x for x in (last, self.max_rows, end) if x is not None)
         start = max(0, end - limit)
         out = {c: self._cols[c][start:end].copy() for c in self.columns}
-        out["err"] = self._err[start:end].copy()
+        for m, a in self._mats.items():
+            out[m] = a[start:end].copy()
         return out
 
 
 SERIES_COLUMNS = ["k", "t", "rmse", "tmsee", "tmsee_lower", "disagreement", "mean_err", "fusion_err",
-                  "lambda2", "lambda2_alive", "links", "reporting", "missing", "msg_rate", "drop_rate", "wall"]
+                  "lambda2", "lambda2_alive", "links", "reporting", "missing", "msg_rate", "drop_rate", "wall",
+                  "nees", "nees_lo", "nees_hi", "nees_scored", "suspected"]
 
 
 # ============================================================================ the model
@@ -358,6 +398,7 @@ class DashboardState:
         self.controls: deque[tuple[int, str, dict]] = deque(maxlen=50)  # control/** seen
         self.last_now = 0.0
         self.has_fusion = False                  # a fusion solver publishes: wait for its estimate too
+        self.invalid_suspects = 0                # values of aux["suspected"] that name no possible suspect
         self._last_err = np.full(self.n, NAN)   # newest known own error per node
         self._lambda2 = _Lambda2Cache()
 
@@ -419,6 +460,10 @@ class DashboardState:
                     f.est_next[msg.src] = msg.x_next
                     if msg.P is not None:
                         f.cov[msg.src] = msg.P
+                    aux = msg.aux if isinstance(msg.aux, dict) else {}
+                    if "suspected" in aux:
+                        f.suspects[msg.src], dropped = valid_suspects(msg.src, aux["suspected"], self.n)
+                        self.invalid_suspects += dropped
             elif key.startswith("fusion/"):
                 f.fusion = msg.x
                 self.has_fusion = True
@@ -525,6 +570,9 @@ class DashboardState:
             if f.fusion is not None and f.fusion.shape == x.shape:
                 row["fusion_err"] = float(np.linalg.norm(f.fusion[:d] - x[:d]))
         row["reporting"] = len(f.est)
+        f.nees = self._score_nees(f, row)
+        if f.suspects:
+            row["suspected"] = sum(len(v) for v in f.suspects.values())
         lower = self.info.tmsee_lower
         if lower is not None and 0 <= f.k < len(lower):
             row["tmsee_lower"] = lower[f.k]
@@ -551,12 +599,30 @@ class DashboardState:
             if isinstance(v, float) and not math.isfinite(v) and c != "t":
                 row[c] = NAN
         err[~np.isfinite(err)] = NAN
-        if not self.series_buf.append(row, err):
+        if not self.series_buf.append(row, err, f.nees):
             return
         self.rows[f.k] = row
         known = ~np.isnan(err)
         self._last_err[known] = err[known]
         self.finalized_k = max(self.finalized_k, f.k)
+
+    def _score_nees(self, f: Frame, row: dict) -> np.ndarray:
+        """(n,) each node's NEES at tick k against the covariance it reported for x̂ᵢ,ₖ (frame k − 1's
+        ``cov``), over the full state; the network's mean and its χ² interval into ``row``
+        (:func:`dashboards.nees.network_nees`). NaN for a node without an estimate or such a covariance."""
+        out = np.full(self.n, NAN)
+        prev, x = self.frames.get(f.k - 1), f.truth
+        if prev is None or not prev.cov or x is None or x.ndim != 1 or not x.size:
+            return out
+        m = x.size
+        ids = [i for i in sorted(f.est) if i in prev.cov and f.est[i].shape == x.shape and prev.cov[i].shape == (m, m)]
+        if not ids:
+            return out
+        r = network_nees(np.array([f.est[i] for i in ids]) - x[None, :], np.array([prev.cov[i] for i in ids]))
+        out[ids] = r["per_node"]
+        if r["scored"]:
+            row.update(nees=r["mean"], nees_lo=r["lo"], nees_hi=r["hi"], nees_scored=r["scored"])
+        return out
 
     def _evict(self) -> None:
         if self.keep_frames is None or self._evict_cursor is None:
@@ -610,13 +676,16 @@ class DashboardState:
         cov_pos = {i: P[:d, :d] for i, P in f.cov.items()}
         trail_ks = [j for j in range(k - self.trail_len + 1, k + 1) if j in self.truth_pos]
         trail = np.array([self.truth_pos[j] for j in trail_ks]).reshape(-1, 3)
+        pairs = [(i, int(j)) for i, js in sorted(f.suspects.items()) for j in js]
         return Snapshot(k=k, t=f.t, n=n, positions=pos, alive=alive, errors=errors, est_pos=est_pos,
                         est_next=dict(f.est_next), cov_pos=cov_pos, edges=edges_of_links(links), neighbours=links,
                         truth_pos=self.truth_pos.get(k) if f.truth is not None else None, trail=trail,
-                        fusion_pos=None if f.fusion is None else _pad3(f.fusion[:d]), row=dict(self.rows.get(k, {})))
+                        fusion_pos=None if f.fusion is None else _pad3(f.fusion[:d]), row=dict(self.rows.get(k, {})),
+                        suspicions=np.array(pairs, dtype=int).reshape(-1, 2),
+                        nees=None if f.nees is None else f.nees.copy())
 
     def series(self, upto_k: int | None = None, last: int | None = None) -> dict[str, np.ndarray]:
-        """The plotted series (columns of :data:`SERIES_COLUMNS` and ``err``: rows × n)."""
+        """The plotted series (columns of :data:`SERIES_COLUMNS`, and ``err`` and ``nees_node``: rows × n)."""
         return self.series_buf.arrays(upto_k, last)
 
     def summary(self) -> dict:

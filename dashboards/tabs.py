@@ -1,5 +1,5 @@
 """Each browser tab's own panels: its view (follow the flock, reset) and its inspector (the selected
-sensor, its covariance ellipse and text, drawn on the tab's own scene).
+sensor, its covariance ellipse, its NEES, whom it suspects and its text, drawn on the tab's own scene).
 
 What a viewer chooses changes only its own tab: these widgets live on the tab's GUI (``client.gui``) and
 its selection overlays on the tab's scene (``client.scene``), and the guard (dashboards/guard.py) lets a tab
@@ -173,7 +173,7 @@ def render_tab(panel: TabPanel, snap, ui) -> None:
     if sel.pos is not None:
         set_segments(o["ring"], plots.circle_segments(sel.pos[None], 1.1 * ui.scene.marker_size, 24))
         o["label"].position = tuple(sel.pos + np.array([0.0, 0.0, 1.5 * ui.scene.marker_size]))
-        o["label"].text = f"sensor {panel.selected}"
+        o["label"].text = selection_label(snap, panel.selected)
         show(o["label"], True)
     else:
         show(o["ring"], False)
@@ -186,6 +186,24 @@ def render_tab(panel: TabPanel, snap, ui) -> None:
     text = inspect_text(snap, panel.selected, ui.info.pos_dims, key[3])
     if text != w["text"].content:
         w["text"].content = text
+
+
+def selection_label(snap, i: int) -> str:
+    """The selected sensor's label in the scene: its id, and whom it suspects at the snapshot's tick."""
+    sus = snap.suspects_of(i)
+    return f"sensor {i}" + (f" · suspects {', '.join(map(str, sus))}" if sus else "")
+
+
+def nees_text(snap, i: int) -> str | None:
+    """Sensor ``i``'s NEES at the snapshot's tick and the network's, with the network's 95 % band (None:
+    no NEES for it)."""
+    own = snap.nees[i] if snap.nees is not None and i < len(snap.nees) else math.nan
+    if not math.isfinite(own):
+        return None
+    row = snap.row
+    net = f" · network {row['nees']:.3g} (95 % band {row['nees_lo']:.3g} … {row['nees_hi']:.3g})" \
+        if all(math.isfinite(row.get(c, math.nan)) for c in ("nees", "nees_lo", "nees_hi")) else ""
+    return f"NEES εᵢ = {own:.3g}{net}"
 
 
 def inspect_text(snap, i: int | None, pos_dims: int, nsig: float) -> str:
@@ -201,4 +219,10 @@ def inspect_text(snap, i: int | None, pos_dims: int, nsig: float) -> str:
              f"own error eᵢ = {e:.3g}" if math.isfinite(e) else "no estimate this tick",
              "x̂ₖ₊₁ = " + (np.array2string(xn, precision=2) if xn is not None else "–"),
              sigma, f"neighbours ({len(nb)}): {', '.join(map(str, nb)) or 'none'}"]
+    nees = nees_text(snap, i)
+    if nees:
+        parts.insert(5, nees)
+    sus = snap.suspects_of(i)
+    if sus:
+        parts.append(f"suspects ({len(sus)}): {', '.join(map(str, sus))}")
     return "  \n".join(parts)

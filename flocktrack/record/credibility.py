@@ -28,30 +28,22 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from agent.estimators.kalman import KalmanPredictor
-
-
-def chi2_interval(dof: int, samples: int, level: float = 0.95) -> tuple[float, float]:
-    """The two-sided ``level`` acceptance interval of an average of ``samples`` NEES values with ``dof``
-    degrees of freedom in all (``samples`` × m)."""
-    a = (1 - level) / 2
-    return float(chi2.ppf(a, dof) / samples), float(chi2.ppf(1 - a, dof) / samples)
+from dashboards.nees import chi2_interval, nees
 
 
 def consistency(errors: np.ndarray, covariances: np.ndarray) -> dict | None:
     """ANEES, its χ² interval, the verdict and COIN of one set of errors (K × m) against the covariances
-    reported for them (K × m × m). None without a usable sample."""
-    keep = [j for j in range(len(errors))
-            if np.isfinite(errors[j]).all() and np.isfinite(covariances[j]).all()
-            and np.linalg.eigvalsh(0.5 * (covariances[j] + covariances[j].T)).min() > 0]
-    if not keep:
+    reported for them (K × m × m). None without a usable sample (:func:`dashboards.nees.nees`: finite,
+    symmetric, positive definite)."""
+    eps = nees(errors, covariances)
+    keep = np.flatnonzero(np.isfinite(eps))
+    if not keep.size:
         return None
-    E, P = errors[keep], covariances[keep]
+    E, P = np.asarray(errors, float)[keep], np.asarray(covariances, float)[keep]
     K, m = E.shape
-    nees = np.einsum("ki,kij,kj->k", E, np.linalg.inv(P), E)
-    anees = float(nees.mean())
+    anees = float(eps[keep].mean())
     lo, hi = chi2_interval(K * m, K)
     w, V = np.linalg.eigh(P.mean(axis=0))
     root = V @ np.diag(w ** -0.5) @ V.T

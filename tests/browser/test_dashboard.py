@@ -444,9 +444,11 @@ def test_uplot_panels_shapes():
         feed(st, synth(n, 20))
         s = st.series()
         panels = plots.uplot_panels(s, n, selected=2)
-        assert [p.key for p in panels] == ["errors", "tmsee", "disagreement", "lambda2", "rates"]
+        assert [p.key for p in panels] == ["errors", "tmsee", "disagreement", "lambda2", "rates", "nees"]
         for p in panels:
-            assert len(p.data) == len(p.series) and all(len(a) == 20 for a in p.data)
+            # (tick 0 has no NEES — no covariance came before it —: the NEES panel's anchor row)
+            rows = 20 + (p.key == "nees")
+            assert len(p.data) == len(p.series) and all(len(a) == rows for a in p.data)
             assert p.scales["x"] == {"time": False}
         assert len(panels[0].series) == expect_err_series
     small = plots.decimate(s, 7)
@@ -558,7 +560,7 @@ def test_viser_ui_renders_and_buttons_queue_controls():
         assert sa is not None and ui.scene.h_sensors.visible and ui.scene.h_links.visible
         assert ui.render_scene(st.snapshot()) is None  # same tick, nothing to redraw
         ui.render_plots(st.series())
-        assert set(ui.plot_panel.handles) == {"errors", "tmsee", "disagreement", "lambda2", "rates"}
+        assert set(ui.plot_panel.handles) == {"errors", "tmsee", "disagreement", "lambda2", "rates", "nees"}
         ui.render_status(st.summary())
         ui.select(4)           # (not a tab's choice: the shared highlight moves, no operator's fields —
         assert ui.selected == 4 and op.g_kill_id.value == 0   # see tests/browser/test_dashboard_auth.py)

@@ -258,11 +258,12 @@ def test_page_shows_the_scene_and_the_uplot_panels(session):
     assert st["std"] > 8.0, st                                      # not a blank (uniform) canvas
     assert st["colourful_fraction"] > 0.002, st                     # coloured sensors / links / target drawn
     assert st["distinct_colours"] > 30, st
-    assert r["uplot_count"] == 5, r["uplot_titles"]
+    assert r["uplot_count"] == 6, r["uplot_titles"]          # the five, and the NEES (minimax: covariances)
     titles = " | ".join(r["uplot_titles"])
-    for word in ("Position error", "TMSEE", "disagreement", "connectivity", "Messages"):
+    for word in ("Position error", "TMSEE", "disagreement", "connectivity", "Messages", "NEES"):
         assert word in titles, titles
-    assert len(r["uplot_canvas_sizes"]) >= 5 and min(r["uplot_canvas_sizes"]) > 0
+    assert "Suspicions" not in titles, titles                # (no resilient consensus in this run)
+    assert len(r["uplot_canvas_sizes"]) >= 6 and min(r["uplot_canvas_sizes"]) > 0
     assert "sensor 4 · alive" in r["inspect_text"] and "neighbours (" in r["inspect_text"]
     assert not r["page_errors"], r["page_errors"]
     assert session["info"]["rc"] == 0
@@ -359,7 +360,7 @@ def test_replay_page_time_slider(session, tmp_path):
                 page.keyboard.press("ArrowLeft")
             page.wait_for_function(f"() => document.body.innerText.includes('tick {last - 10} (world')",
                                    timeout=30_000)
-            assert page.locator(".uplot").count() == 5
+            assert page.locator(".uplot").count() == 6          # (with the NEES panel)
             # the sensor 3 the live page killed is dead (grey) at the end of the recording
             page.get_by_label("Sensor", exact=True).click()
             page.get_by_role("option", name=str(VICTIM), exact=True).click()
@@ -375,23 +376,28 @@ def test_replay_page_time_slider(session, tmp_path):
 DEMO = ROOT / "scenarios" / "demo.toml"   # the scenario of the main job (12 sensors, range 12)
 
 #: every uPlot panel of the page, from Viser's own testpoint (window.__viserTestpoints.uplots): its columns'
-#: lengths and finite points, whether x strictly increases, and each y scale's current min/max
+#: lengths and finite points, whether x strictly increases, and each y scale's current min/max and its
+#: distribution (3: logarithmic)
 UPLOT_STATE = """() => Object.values(window.__viserTestpoints?.uplots || {}).map(({chart: u}) => {
     const x = u.data[0]; let inc = true;
     for (let i = 1; i < x.length; i++) if (!(x[i] > x[i - 1])) inc = false;
     const series = u.series.slice(1).map((s, j) => {
         let finite = 0; for (const v of u.data[j + 1]) if (Number.isFinite(v)) finite++;
         return {label: s.label, scale: s.scale, len: u.data[j + 1].length, finite}; });
-    const scales = {}; for (const s of series) scales[s.scale] = [u.scales[s.scale].min, u.scales[s.scale].max];
-    return {title: u.root.querySelector('.u-title')?.textContent || '', rows: x.length, inc, series, scales};
+    const scales = {}, distr = {};
+    for (const s of series) { scales[s.scale] = [u.scales[s.scale].min, u.scales[s.scale].max];
+                              distr[s.scale] = u.scales[s.scale].distr; }
+    return {title: u.root.querySelector('.u-title')?.textContent || '', rows: x.length, inc, series, scales,
+            distr};
 })"""
 
 
-def panels_drawn(state, min_points: int) -> list[str]:
-    """What keeps each uPlot panel from showing its lines ([] when all five do): a panel must have columns
-    of one length with x strictly increasing, at least one line with ``min_points`` finite points, and a
-    finite min < max on every y scale (a NaN scale is what draws axes without ticks and no line at all)."""
-    if not state or len(state) != 5:
+def panels_drawn(state, min_points: int, panels: int = 6) -> list[str]:
+    """What keeps each uPlot panel from showing its lines ([] when all ``panels`` do: the five of every run
+    and the NEES of estimates with covariances): a panel must have columns of one length with x strictly
+    increasing, at least one line with ``min_points`` finite points, and a finite min < max on every y scale
+    (a NaN scale is what draws axes without ticks and no line at all)."""
+    if not state or len(state) != panels:
         return [f"{0 if not state else len(state)} uPlot panels in the page"]
     bad = []
     for p in state:
@@ -526,7 +532,9 @@ def test_live_plots_draw_through_a_starved_stream(tmp_path):
     scale's min and max (NaN): that scale, its ticks and every line on it vanish (only msg/s, never NaN,
     drew). A starved machine adds ticks without any estimate, dead and restarted sensors, ticks never
     heard of, late and reordered messages. Here a real dashboard process gets such a stream over a real
-    router and a real Chromium must show every panel's lines, mid-run and after the end."""
+    router and a real Chromium must show every panel's lines, mid-run and after the end — the NEES panel
+    too (the stream's estimates carry covariances): its line, its χ² band and the selected sensor's own,
+    on a logarithmic y scale whose range is positive."""
     _require_browser()
     from agent.wire import End
     from playwright.sync_api import sync_playwright
@@ -540,7 +548,7 @@ def test_live_plots_draw_through_a_starved_stream(tmp_path):
             time.sleep(0.02)
         # mid-run: through the starved ticks, the lost ones and the dead sensor
         _wait_tick(page, 60, timeout_ms=60_000)
-        page.wait_for_function(f"() => ({UPLOT_STATE})().filter(p => p.rows >= 55).length == 5", timeout=60_000,
+        page.wait_for_function(f"() => ({UPLOT_STATE})().filter(p => p.rows >= 55).length == 6", timeout=60_000,
                                polling=500)
         mid = page.evaluate(UPLOT_STATE)
         for k in range(65, ticks):
@@ -548,7 +556,7 @@ def test_live_plots_draw_through_a_starved_stream(tmp_path):
             time.sleep(0.02)
         dash.publish([("world/end", End(k=ticks))])
         page.wait_for_function("() => /· ended/.test(document.body.innerText)", timeout=60_000, polling=500)
-        page.wait_for_function(f"() => ({UPLOT_STATE})().filter(p => p.rows >= {ticks - 8}).length == 5",
+        page.wait_for_function(f"() => ({UPLOT_STATE})().filter(p => p.rows >= {ticks - 8}).length == 6",
                                timeout=60_000, polling=500)
         page.wait_for_timeout(1000)      # a last plot update after the end
         end = page.evaluate(UPLOT_STATE)
@@ -557,8 +565,12 @@ def test_live_plots_draw_through_a_starved_stream(tmp_path):
     assert panels_drawn(mid, 40) == [], mid
     assert panels_drawn(end, 80) == [], end
     titles = " | ".join(p["title"] for p in end)
-    for word in ("Position error", "TMSEE", "disagreement", "connectivity", "Messages"):
+    for word in ("Position error", "TMSEE", "disagreement", "connectivity", "Messages", "NEES"):
         assert word in titles, titles
+    nees = next(p for p in end if "NEES" in p["title"])
+    assert [s["label"] for s in nees["series"]] == ["NEES", "95 % lo", "95 % hi", "ε0"], nees
+    assert nees["distr"]["y"] == 3 and 0 < nees["scales"]["y"][0] < nees["scales"]["y"][1], nees
+    assert all(s["finite"] >= 80 for s in nees["series"]), nees     # (gaps: the starved and the lost ticks)
     # the lines do have their gaps: the starved ticks, the lost ticks, the dead sensor
     rmse = next(p for p in end if "Position error" in p["title"])["series"][-1]
     assert rmse["label"] == "RMSE" and rmse["finite"] < rmse["len"] - 5, rmse
