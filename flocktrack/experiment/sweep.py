@@ -24,8 +24,10 @@
 * Output: ``DIR/results.csv`` (tidy: one row per run and metric — the grid keys, ``seed``, ``run_id``,
   ``status``, ``metric``, ``value``, ``error``; the scalar metrics of ``summary.json`` and
   ``per_node_rmse[i]``), ``DIR/summary.csv`` (per cell and metric: n, mean, bootstrap 95 % CI, std,
-  median, 10/90 % quantiles), ``DIR/sweep.json`` (grid, seeds, timings, failures, executor, each Dask run's
-  host and where its recording stayed) and ``DIR/figures/*.png`` (:mod:`dashboards.sweep_plots`).
+  median, 10/90 % quantiles), ``DIR/consistency.csv`` (per cell: the Monte-Carlo ANEES over the seeds and
+  its verdict, :mod:`flocktrack.experiment.consistency`), ``DIR/sweep.json`` (grid, seeds, timings, failures,
+  executor, each Dask run's host and where its recording stayed) and ``DIR/figures/*.png``
+  (:mod:`dashboards.sweep_plots`).
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ from flocktrack.resources import add_scenario_argument
 
 from .executors import Executor, ExecutorError, PoolExecutor
 from .grid import SHORTHANDS, Axis, RunSpec, expand, parse_grid
+from .consistency import describe, write_consistency_csv
 from .results import collect_rows, make_figures, write_results_csv, write_summary_csv
 
 
@@ -260,6 +263,7 @@ def run_sweep(cfg: SweepConfig) -> dict:
     rows = collect_rows(cfg.axes, specs, runs_dir, results)
     write_results_csv(out / "results.csv", cfg.axes, rows)
     write_summary_csv(out / "summary.csv", cfg.axes, rows)
+    consistency = write_consistency_csv(out / "consistency.csv", cfg.axes, rows)
     figures: list[str] = []
     fig_error = None
     if cfg.figures:
@@ -270,7 +274,10 @@ def run_sweep(cfg: SweepConfig) -> dict:
             prog.note(f"figures failed: {fig_error}")
     meta = _sweep_meta(cfg, specs, results, jobs=jobs, skipped=skipped, stale=stale, executed=len(tasks),
                        started=started, wall=wall)
-    meta.update(figures=figures, figures_error=fig_error, executor=executor.info() | {"kind": cfg.executor})
+    meta.update(figures=figures, figures_error=fig_error, executor=executor.info() | {"kind": cfg.executor},
+                consistency=consistency)
+    if consistency:
+        meta["outputs"]["consistency"] = "consistency.csv"
     (out / "sweep.json").write_text(json.dumps(meta, indent=2, default=_json_default) + "\n")
     return meta
 
@@ -421,7 +428,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
           + (f", {meta['failed']} failed (see {out}/sweep.json)" if meta["failed"] else "")
           + (f", {meta['resumed']} resumed" if meta["resumed"] else "")
           + f" in {meta['wall_s']:.1f} s; wrote {out}/results.csv, summary.csv, sweep.json"
+          + (", consistency.csv" if meta.get("consistency") else "")
           + (f", {len(meta['figures'])} figures in {out}/figures/" if meta["figures"] else ""))
+    for rec in meta.get("consistency") or []:
+        print("  " + describe(rec, cfg.axes))
     return 1 if meta["failed"] else 0
 
 

@@ -162,6 +162,31 @@ def test_results_csv_is_tidy(sweep):
                                 for a in nr)
 
 
+def test_consistency_csv_gives_each_cells_anees_over_its_seeds(sweep):
+    """The Monte-Carlo consistency: per cell, the mean of its runs' ANEES (from the same results.csv), the
+    verdict by whether m lies in the seeds' interval, and the pooled textbook interval beside it."""
+    from dashboards.nees import chi2_interval
+
+    _, out = sweep
+    rows = _rows(out / "results.csv")
+    cons = _rows(out / "consistency.csv")
+    assert len(cons) == 4
+    for c in cons:
+        mine = [r for r in rows if (r["estimator.rounds"], r["estimator.name"]) == (c["estimator.rounds"],
+                                                                                    c["estimator.name"])]
+        anees = [float(r["value"]) for r in mine if r["metric"] == "credibility.network.anees"]
+        samples = sum(int(float(r["value"])) for r in mine if r["metric"] == "credibility.network.samples")
+        assert int(c["runs"]) == 2 and int(c["samples"]) == samples and int(c["dof"]) == 4
+        assert float(c["anees"]) == pytest.approx(np.mean(anees), rel=1e-5)
+        lo, hi = float(c["seeds_ci95_lo"]), float(c["seeds_ci95_hi"])
+        assert lo <= float(c["anees"]) <= hi
+        assert c["verdict"] == ("consistent" if lo <= 4 <= hi else "conservative" if hi < 4 else "optimistic")
+        assert (float(c["chi2_lo"]), float(c["chi2_hi"])) == pytest.approx(chi2_interval(4 * samples, samples),
+                                                                           rel=1e-5)
+    meta = json.loads((out / "sweep.json").read_text())
+    assert len(meta["consistency"]) == 4 and meta["outputs"]["consistency"] == "consistency.csv"
+
+
 def test_figures_are_real_pngs(sweep):
     import matplotlib.image as mpimg
 
