@@ -2,7 +2,8 @@
 at 1, 2, 5 and 10 consensus rounds, how honest each estimator's covariance is (the network ANEES against its
 χ² interval, COIN; each node's innovations, NIS), Chen's constant-gain filter's measured energy ratio against its
 bound 1/γ, and how far each error is from the centralized Kalman reference (efficiency) — each the mean over
-independent seeds of in-process runs (flocktrack/record/credibility.py).
+independent seeds of in-process runs (flocktrack/record/credibility.py); and for García Carrillo et al.'s fusion,
+each estimator's position NEES against the covariance it sent.
 
     python bench/make_credibility_docs.py [--seeds N] [--work DIR]
 
@@ -84,6 +85,43 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def fusion(seeds: int, work: Path) -> list[dict]:
+    """García Carrillo et al.'s fusion: each estimator's position NEES (m = 2) at the newest window node
+    against the covariance it sent, over ``seeds`` runs of carrillo_uav."""
+    runs = []
+    for seed in range(seeds):
+        out = work / f"carrillo-{seed}"
+        if not (out / "summary.json").exists():
+            assert cli(["run", str(ROOT / "scenarios" / "carrillo_uav.toml"), "--transport", "inproc", "--quiet",
+                        "--seed", str(seed), "--out", str(out)]) == 0
+        runs.append(json.loads((out / "summary.json").read_text())["fusion"])
+    rows = []
+    for name in sorted(k for k, v in runs[0].items() if isinstance(v, dict) and "nees_newest" in v):
+        a = [r[name]["nees_newest"]["anees"] for r in runs]
+        m = [r[name]["nees_midwindow"]["anees"] for r in runs if "nees_midwindow" in r[name]]
+        verdicts = [r[name]["nees_newest"]["verdict"] for r in runs]
+        rows.append({"estimator": name, "anees_newest": float(np.mean(a)), "range": [min(a), max(a)],
+                     "anees_midwindow": float(np.mean(m)) if m else None,
+                     "interval": runs[0][name]["nees_newest"]["interval"],
+                     "verdict": ", ".join(f"{verdicts.count(v)} of {len(runs)} {v}" for v in sorted(set(verdicts))),
+                     "rmse_newest": float(np.mean([r[name]["rmse_newest"] for r in runs]))})
+    return rows
+
+
+def fusion_table(rows: list[dict], seeds: int) -> str:
+    lines = ["", f"García Carrillo et al.'s fusion (`carrillo_uav`, {seeds} seeds): each estimator's position NEES "
+             "(m = 2) against the covariance it sent — the windows' from their own information "
+             "(`agent/estimators/son_covariance.py`), the Kalman filters' their P.", "",
+             "| estimator | ANEES, newest node: mean (seeds' range) | one run's 95 % interval | verdicts | "
+             "ANEES, mid-window | RMSE newest (m) |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        iv = r["interval"]
+        lines.append(f"| {r['estimator']} | {_f(r['anees_newest'])} ({_f(r['range'][0])}–{_f(r['range'][1])}) | "
+                     f"{_f(iv[0])}–{_f(iv[1])} | {r['verdict']} | {_f(r['anees_midwindow'])} | "
+                     f"{_f(r['rmse_newest'])} |")
+    return "\n".join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=3)
@@ -100,21 +138,25 @@ def main() -> int:
                         "anees": _mean(rows, "anees"), "interval": rows[0]["interval"],
                         "anees_range": [min(anees), max(anees)] if anees else None,
                         "verdict": ", ".join(f"{verdicts.count(v)} of {len(rows)} {v}"
-                                             for v in sorted(set(verdicts), key=verdicts.count, reverse=True)),
+                                             for v in sorted(set(verdicts), key=lambda v: (-verdicts.count(v), v))),
                         "coin": _mean(rows, "coin"), "nis": _mean(rows, "nis"),
                         "energy_ratio": _mean(rows, "energy_ratio"), "energy_bound": rows[0]["energy_bound"],
                         "efficiency": _mean(rows, "efficiency"),
                         "vs_central": _mean(rows, "vs_central"), "network_rmse": _mean(rows, "network_rmse"),
                         "runs": rows})
         print(f"{label}: ANEES {_f(results[-1]['anees'])}, efficiency {_f(results[-1]['efficiency'])}", flush=True)
+    fused = fusion(args.seeds, work)
+    for r in fused:
+        print(f"fusion {r['estimator']}: ANEES {_f(r['anees_newest'])} ({r['verdict']})", flush=True)
     out = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                        "platform": platform.platform(), "date": time.strftime("%Y-%m-%d")},
-           "seconds": round(time.time() - t0, 1), "cases": results}
+           "seconds": round(time.time() - t0, 1), "cases": results, "fusion": fused}
     (ROOT / "bench" / "results" / "credibility.json").write_text(json.dumps(out, indent=1))
     doc = ROOT / "docs" / "credibility.md"
     text = doc.read_text()
     a, b = text.index("<!-- credibility:begin -->"), text.index("<!-- credibility:end -->")
-    doc.write_text(text[:a] + "<!-- credibility:begin -->\n" + table(results) + "\n" + text[b:])
+    doc.write_text(text[:a] + "<!-- credibility:begin -->\n" + table(results) + "\n"
+                   + fusion_table(fused, args.seeds) + "\n" + text[b:])
     return 0
 
 

@@ -71,6 +71,7 @@ import numpy as np
 
 from .relative_measurement import RelativeMeasurement, whitener
 from .son_banded import bandwidth
+from .son_covariance import node_covariances
 from .son_fused import fused_split_ipm
 from .son_ipm import IPM_STATUS, solve_ipm
 from .son_layout import (NO_ARRIVAL, ROW_ARRIVAL, ROW_GPS, ROW_PRIOR, ROW_REL, build_split, build_split_arrival,
@@ -502,6 +503,17 @@ class SumOfNormsEstimator:
                       newest=target[-1].copy(), midwindow=target[mid].copy(), t_newest=float(times[-1]),
                       t_mid=float(times[mid]), solver=out.solver, iterations=out.iterations, status=out.status,
                       extra=out.extra)
+
+    def covariances(self, delta: float | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """The covariances of the target state at the window's newest and middle nodes (4 × 4 each, the order
+        of :attr:`Result.newest` and :attr:`Result.midwindow`) that the window's own information implies
+        (:func:`agent.estimators.son_covariance.node_covariances`); None for an empty or undetermined window."""
+        if self.window.count == 0:
+            return None
+        prob, lay = self.problem(delta)
+        k = lay["order"].shape[0]
+        out = node_covariances(prob, lay, [k - 1, (k - 1) // 2])
+        return None if out is None else (out[0], out[1])
 
     # ------------------------------------------------------------------ λ helpers
     def lambda_max(self) -> float:

@@ -8,8 +8,10 @@ announced, sorted by (time stamp, sender) — so the estimates do not depend on 
 interleave on the network, and a lockstep run over Zenoh equals the in-process one.
 
 Each published ``Estimate`` has ``name`` = the estimator, ``x`` = the target state [p, v] at the newest
-window node, ``x_next`` = the mid-window (smoothed) state, and ``aux`` = {"t": [t_newest],
-"t_mid": [t_mid], "outliers": [number flagged in the window]}.
+window node, ``x_next`` = the mid-window (smoothed) state, ``P`` = the covariance of ``x_next`` and
+``aux`` = {"t": [t_newest], "t_mid": [t_mid], "outliers": [number flagged in the window], "P_newest": the
+covariance of ``x``}. A window's covariances are those its own information implies
+(:mod:`agent.estimators.son_covariance`); the Kalman baselines send their P (``x`` = ``x_next``).
 """
 
 from __future__ import annotations
@@ -81,12 +83,19 @@ class FusionRole(Role):
                 x, xm = np.asarray(r.newest, float), np.asarray(r.midwindow, float)
                 aux = {"t": np.array([r.t_newest]), "t_mid": np.array([r.t_mid]),
                        "outliers": np.array([float(np.sum(r.outliers))])}
+                cov = est.covariances() if hasattr(est, "covariances") else None
+                P = None if cov is None else cov[1]
+                if cov is not None:
+                    aux["P_newest"] = cov[0]
             else:                           # Kalman on every measurement
                 est.add(rec)
                 x = np.asarray(est.estimate(), float)
                 xm = x
                 aux = {"t": np.array([float(est.t)]), "t_mid": np.array([float(est.t)])}
+                P = None if getattr(est, "P", None) is None else np.array(est.P, float)
             if not np.all(np.isfinite(x)) or not np.all(np.isfinite(xm)):
                 self.counters[f"non_finite_{name}"] += 1
                 continue
-            self.publish("fusion/estimate", Estimate(k=m.k, x=x, x_next=xm, name=name, aux=aux))
+            if P is not None and (P.shape != (x.size, x.size) or not np.all(np.isfinite(P))):
+                P = None
+            self.publish("fusion/estimate", Estimate(k=m.k, x=x, x_next=xm, P=P, name=name, aux=aux))

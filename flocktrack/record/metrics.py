@@ -62,7 +62,8 @@ class MetricsCollector:
         self._w: dict[int, np.ndarray] = {}
         self._v: dict[int, dict[int, np.ndarray]] = {}
         self._eps: dict[int, dict[int, dict[str, np.ndarray]]] = {}
-        self._fusion: dict[str, list[tuple[float, float, np.ndarray, np.ndarray]]] = {}
+        #: name → (t newest, t mid, x newest, x mid, P newest, P mid) per estimate (P None: not sent)
+        self._fusion: dict[str, list[tuple]] = {}
         self._meas_pos: list[tuple[float, np.ndarray]] = []
         self._cov: dict[int, dict[int, np.ndarray]] = {}          #: tick → node → the P reported for its x̂
         self._meas: dict[int, dict[int, tuple[float, np.ndarray]]] = {}   #: tick → node → (b, y)
@@ -100,7 +101,8 @@ class MetricsCollector:
                 t, x = msg.aux.get("t_newest"), msg.aux.get("newest")
                 if t is not None and x is not None and t.shape == (1,) and x.shape == (4,):
                     # a distributed-fusion UAV's estimate at its window's newest node, scored like the fusion's
-                    self._fusion.setdefault(f"admm/{msg.src}", []).append((float(t[0]), float(t[0]), x, x))
+                    self._fusion.setdefault(f"admm/{msg.src}", []).append((float(t[0]), float(t[0]), x, x,
+                                                                               None, None))
         elif isinstance(msg, State) and key == "target/state":
             self._target_pos[msg.k] = msg.pos
             if msg.w is not None:
@@ -108,7 +110,11 @@ class MetricsCollector:
         elif isinstance(msg, Estimate) and key == "fusion/estimate":
             t, tm = msg.aux.get("t"), msg.aux.get("t_mid")
             if t is not None and tm is not None:
-                self._fusion.setdefault(msg.name, []).append((float(t[0]), float(tm[0]), msg.x, msg.x_next))
+                Pn = msg.aux.get("P_newest")          # (a filter's x is its x_next: P is both)
+                if Pn is None and np.array_equal(msg.x, msg.x_next):
+                    Pn = msg.P
+                self._fusion.setdefault(msg.name, []).append((float(t[0]), float(tm[0]), msg.x, msg.x_next, Pn,
+                                                              msg.P))
         elif isinstance(msg, Control) and key == "world/event" and msg.verb == "fault":
             self._note_fault(msg)
         elif isinstance(msg, Meas):
@@ -285,17 +291,28 @@ class MetricsCollector:
         meas = sorted(self._meas_pos, key=lambda tp: (tp[0], tuple(tp[1])))  # arrival order must not matter
         me = [p - self.truth_position(t) for t, p in meas if self.truth_position(t) is not None]
         out["measurement_rmse"] = float(np.sqrt(np.mean(np.sum(np.square(me), axis=1)))) if me else None
+        from .credibility import consistency
+
         for name in sorted(self._fusion):
-            en, em = [], []
-            for t, tm, x, xm in self._fusion[name]:
+            en, em, cn, cm = [], [], [], []     # errors; (error, P) pairs for the NEES
+            for t, tm, x, xm, Pn, Pm in self._fusion[name]:
                 pt, pm = self.truth_position(t), self.truth_position(tm)
                 if pt is not None:
                     en.append(x[:2] - pt)
+                    if Pn is not None and Pn.shape == (4, 4):
+                        cn.append((en[-1], Pn[:2, :2]))
                 if pm is not None:
                     em.append(xm[:2] - pm)
+                    if Pm is not None and Pm.shape == (4, 4):
+                        cm.append((em[-1], Pm[:2, :2]))
             out[name] = {"estimates": len(self._fusion[name]),
                          "rmse_newest": float(np.sqrt(np.mean(np.sum(np.square(en), axis=1)))) if en else None,
                          "rmse_midwindow": float(np.sqrt(np.mean(np.sum(np.square(em), axis=1)))) if em else None}
+            # the position's NEES against the covariance each estimate was sent with (m = 2)
+            for key, pairs in (("nees_newest", cn), ("nees_midwindow", cm)):
+                c = consistency(np.array([e for e, _ in pairs]), np.array([P for _, P in pairs])) if pairs else None
+                if c is not None:
+                    out[name][key] = c
         return out
 
     def run_trace(self) -> RunTrace | None:

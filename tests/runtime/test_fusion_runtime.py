@@ -25,6 +25,13 @@ def test_inproc_fusion_scores(tmp_path):
     assert son < kal and son < bls and son < f["measurement_rmse"], f
     assert f["sum_of_norms"]["rmse_midwindow"] < son  # the smoothed (lagged) estimate is better still
     assert f["sum_of_norms"]["estimates"] > 100
+    # each estimate's covariance: through 15 % outliers the Kalman filter's is optimistic many times over (its P
+    # knows nothing of the outliers it takes in); the window, which sets them aside, is far closer to honest
+    son_nees, kal_nees = f["sum_of_norms"]["nees_newest"], f["kalman_q5000"]["nees_newest"]
+    assert son_nees["dof"] == 2 and son_nees["samples"] > 100
+    assert kal_nees["verdict"] == "optimistic" and kal_nees["anees"] > 5 * 2, kal_nees
+    assert 0.5 < son_nees["anees"] < kal_nees["anees"] / 3, (son_nees, kal_nees)
+    assert f["sum_of_norms"]["nees_midwindow"]["anees"] < son_nees["anees"]    # the smoothed one more so
 
 
 def test_zenoh_lockstep_fusion_equals_inproc(tmp_path):
