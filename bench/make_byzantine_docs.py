@@ -110,7 +110,7 @@ def table(rows: list[dict], base: dict, dense: dict, ticks: int) -> str:
             out.append(f"| {r['mode']} | {mag} | {r['start']} | {_cell(r)} |")
     two = [r for r in rows if r["f"] == 2]
     rob = two[0]["robustness"] if two else {}
-    out += ["", f"`estimator.resilient_f = 2`, two sensors lying the same way from tick 50, on the same target with",
+    out += ["", "`estimator.resilient_f = 2`, two sensors lying the same way from tick 50, on the same target with",
             "`topology.range = 40` (every sensor hears every other: the complete graph on 10, 5-robust at",
             f"{rob.get('ticks_robust', 0)} of {ticks} ticks as the run verified it). Fault-free:",
             f"{dense['false_suspicion_rate'] * 100:.2f} % false suspicions; in brackets the later of the two detections.",
