@@ -31,7 +31,8 @@ d²/p between honest neighbours falls from 1.0 in round 0 to 0.19, 0.07, 0.03, 0
 lie stays. So for each round r ≥ 1 the gate keeps, per neighbour, a running mean m of the visibility-normalised
 residual difference z = uⱼ/βⱼ − uᵢ/βᵢ (zero-mean between honest payloads whatever their β: the prediction error
 cancels) and a slower running second moment V of z, and tests m′V⁻¹m against the same scaled χ² at
-``ALPHA_RUN``: a test that needs no model of how far apart honest mixtures are, only that they are unbiased.
+``ALPHA_SPREAD`` (stricter than ``ALPHA_RUN``: V is itself an estimate, and a flag holds from tick to tick): a
+test that needs no model of how far apart honest mixtures are, only that they are unbiased.
 A neighbour that any running test flags is discarded in every round, from that round on, until its tests
 clear.
 
@@ -93,7 +94,8 @@ class InformationGate:
     def suspects(self, own: Mapping[str, np.ndarray], others: Mapping[int, Mapping[str, np.ndarray]],
                  x: np.ndarray, r: int = 0) -> list[int]:
         """The neighbours in ``others`` whose payload of round ``r`` is inconsistent with ``own`` at the
-        prediction ``x`` (round 0 also updates each neighbour's running residual)."""
+        prediction ``x``; each round also updates the neighbours' running tests (round 0 the running residual,
+        later rounds the running agreement)."""
         u_own = self.residual(own, x)
         beta_own = float(np.vdot(own["chi1"], self.G1)) / self._g11
         tol2 = 1e-12 * self._g11
@@ -131,7 +133,7 @@ class InformationGate:
     def _spread_off(self, j: int, r: int, z: np.ndarray) -> bool:
         """Fold round ``r``'s normalised residual difference z into neighbour j's running mean m (λ = ``LAMBDA``)
         and second moment V (λ = ``LAMBDA_V``), and test m′V⁻¹m / ((λ/(2 − λ)) (1 − (1 − λ)^{2n})) against χ²
-        at ``ALPHA_RUN`` once V has ``WARMUP`` updates. V is not centred: a steady lie only makes it larger,
+        at ``ALPHA_SPREAD`` once V has ``WARMUP`` updates. V is not centred: a steady lie only makes it larger,
         so the test stays conservative for a neighbour that lies from its first tick."""
         m, V, n = self._spread.get((j, r), (np.zeros_like(z), np.zeros((z.size, z.size)), 0))
         m = (1 - LAMBDA) * m + LAMBDA * z

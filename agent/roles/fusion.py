@@ -83,10 +83,9 @@ class FusionRole(Role):
                 x, xm = np.asarray(r.newest, float), np.asarray(r.midwindow, float)
                 aux = {"t": np.array([r.t_newest]), "t_mid": np.array([r.t_mid]),
                        "outliers": np.array([float(np.sum(r.outliers))])}
-                cov = est.covariances() if hasattr(est, "covariances") else None
-                P = None if cov is None else cov[1]
+                cov, P = est.covariances() if hasattr(est, "covariances") else None, None
                 if cov is not None:
-                    aux["P_newest"] = cov[0]
+                    aux["P_newest"], P = cov
             else:                           # Kalman on every measurement
                 est.add(rec)
                 x = np.asarray(est.estimate(), float)
