@@ -180,6 +180,9 @@ def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: Stop
 
     if hasattr(bus, "restrict_writes"):
         bus.restrict_writes(role.ports().writes)
+    timing = getattr(role, "timing", None)
+    if timing is not None and os.environ.get("FLOCKTRACK_STATS_DIR"):
+        timing.path = Path(os.environ["FLOCKTRACK_STATS_DIR"]) / (slug(name) + "-ticks.csv")
     role.attach(bus)
     bus.watch_members(on_member)
     bus.declare_token(name)
@@ -232,14 +235,16 @@ def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, *, idl
 
 
 def write_stats(name: str, bus, role: Role | None = None) -> None:
-    """Dump this process's bus counters to ``$FLOCKTRACK_STATS_DIR/<name>.json`` (set by the launcher)."""
+    """Dump this process's bus counters to ``$FLOCKTRACK_STATS_DIR/<name>.json`` (set by the launcher), and
+    the last rows of its tick timing (:mod:`agent.roles.tick_timing`) to ``<name>-ticks.csv``."""
     import json
-    import os
-    from pathlib import Path
 
     d = os.environ.get("FLOCKTRACK_STATS_DIR")
     if not d:
         return
+    timing = getattr(role, "timing", None)
+    if timing is not None:
+        timing.flush()          # the last rows of stats/<name>-ticks.csv
     out = bus.stats.as_dict()
     counters = getattr(role, "counters", None) or getattr(role, "stats", None)
     if counters:

@@ -94,6 +94,7 @@ class WorldRole(Role):
         self._t0: float | None = None
         self._expected: set[int] = set()
         self.stats = {"late_states": 0, "missing_states": 0, "controls": 0}
+        self._late_logged_at, self._late_unlogged = -float("inf"), 0   # (the late states' log line)
         # control plane (DESIGN.md control/**): pause/step/speed and link faults, applied per tick
         self.paused = False
         self._step_budget: int | None = None
@@ -393,7 +394,17 @@ class WorldRole(Role):
             self._check()
         elif msg.k < self.k:
             self.stats["late_states"] += 1
-            log.info("world: state of agent/%d for tick %d came after the tick closed (now at %d)", msg.src, msg.k, self.k)
+            self._log_late(msg)
+
+    def _log_late(self, msg: State, every_s: float = 1.0) -> None:
+        """A state that came after its tick closed: logged at most once every ``every_s`` seconds, with the
+        count since the last line (an overloaded flock sends hundreds a second; each is in ``late_states``)."""
+        now = time.monotonic()
+        self._late_unlogged += 1
+        if now - self._late_logged_at >= every_s:
+            log.info("world: late states, come after their tick closed: %d since the last such line (the latest: "
+                     "agent/%d's for tick %d, now at %d)", self._late_unlogged, msg.src, msg.k, self.k)
+            self._late_logged_at, self._late_unlogged = now, 0
 
     def _on_target_state(self, key: str, msg: Message) -> None:
         assert isinstance(msg, State)

@@ -35,6 +35,7 @@ from ..wire import (Control, Estimate, FaultEvent, Meas, Message, State, Tick, T
 from .common import Role
 from .rejoin import Rejoin
 from .rounds import RoundInbox
+from .tick_timing import TickTiming
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +73,7 @@ class SensorRole(Role):
         self.join = Rejoin(self.i, rejoin, self.counters)   # a restart's way back, and the handover to others
         self.link = LinkEmulator(self.i, self.seed, self._accept_xchg, time.monotonic, noise_factor(sensor),
                                  counters=self.counters)
+        self.timing = TickTiming()     # where each tick's time went (the runner points it at stats/)
 
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
@@ -221,6 +223,7 @@ class SensorRole(Role):
             self._predict_blind(tick.n)
             self.counters["sat_out_ticks"] += 1
             return
+        self.timing.begin(self.k, self._tick_arrived.get(self.k))
         self.link.release(self.k)
         b = float(tick.b[self.i])
         y = self._measure(tick, truth, b)
@@ -233,35 +236,42 @@ class SensorRole(Role):
             self.join.start_from(self.est, self._nbrs, self.k)
             log.info("agent/%d: back in the flock at tick %d", self.i, self.k)
         self._prior = self.est.x.copy()
-        self.est.start(TickContext(k=tick.k, t=tick.t, n=tick.n, neighbours=tuple(self._nbrs), b=b, T=self.T,
-                                   weights=tuple(tick.weights[self.i][links.index(j)] for j in self._nbrs),
-                                   delta_max=tick.delta_max), y)
+        with self.timing.spent("compute"):
+            self.est.start(TickContext(k=tick.k, t=tick.t, n=tick.n, neighbours=tuple(self._nbrs), b=b, T=self.T,
+                                       weights=tuple(tick.weights[self.i][links.index(j)] for j in self._nbrs),
+                                       delta_max=tick.delta_max), y)
         self.r = 0
         self._open_round()
 
     def _measure(self, tick: Tick, truth: Truth, b: float) -> np.ndarray:
         """Step 1: yᵢ from the truth with this sensor's noise (and the link emulator's faults), published as
         ``meas``; returned for the estimator."""
-        y = self.link.perturb(self.sensor.measure(truth.x, b, self.rng))
+        with self.timing.spent("compute"):
+            y = self.link.perturb(self.sensor.measure(truth.x, b, self.rng))
         v = getattr(self.sensor, "last_v", None)
-        self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy(),
-                                                  v=None if v is None else np.array(v, float)))
+        with self.timing.spent("publish"):
+            self.publish(f"agent/{self.i}/meas", Meas(src=self.i, k=self.k, t=tick.t, y=y, b=b, pos=self.q.copy(),
+                                                      v=None if v is None else np.array(v, float)))
         return y
 
     def _open_round(self) -> None:
         if self.r >= self.est.rounds:
             self._finish()
             return
-        payload = self.link.corrupt(self.r, self.est.payload(self.r))
-        self.publish_to(self._out, Xchg(src=self.i, k=self.k, r=self.r, payload=payload))
+        with self.timing.spent("compute"):
+            payload = self.link.corrupt(self.r, self.est.payload(self.r))
+        with self.timing.spent("publish"):
+            self.publish_to(self._out, Xchg(src=self.i, k=self.k, r=self.r, payload=payload))
         self._check_round()
 
     def _check_round(self) -> None:
         if self.inbox.complete(self.k, self.r, self._nbrs, self.link.withheld(self.k, self.r)):
             self._close_round()
 
-    def _close_round(self) -> None:
-        self.est.absorb(self.r, self.inbox.take(self.k, self.r, self._nbrs))
+    def _close_round(self, by_deadline: bool = False) -> None:
+        with self.timing.spent("compute"):
+            self.est.absorb(self.r, self.inbox.take(self.k, self.r, self._nbrs))
+        self.timing.round_closed(by_deadline)
         self.r += 1
         self._open_round()
 
@@ -276,23 +286,28 @@ class SensorRole(Role):
             self._try_begin()
         elif self.r >= 0:
             self.counters["deadline_rounds"] += 1
-            self._close_round()
+            self._close_round(by_deadline=True)
 
     def _finish(self) -> None:
-        self.est.finish()
+        with self.timing.spent("compute"):
+            self.est.finish()
         x_next, P = self.est.x, self.est.P
         eps = getattr(self.est, "last_channel_noise", None) or {}
         aux = {f"eps_{j}": np.asarray(e, float) for j, e in sorted(eps.items())}
         aux.update(self.est.report())
         self.join.last = Estimate(src=self.i, k=self.k, x=self._prior, x_next=x_next.copy(),
                                   P=None if P is None else np.array(P, float), name=type(self.est).__name__, aux=aux)
-        self.publish(f"agent/{self.i}/estimate", self.join.last)
+        with self.timing.spent("publish"):
+            self.publish(f"agent/{self.i}/estimate", self.join.last)
         if self.controller is not None:
-            d, tick = self.pos_dims, self._ticks[self.k]
-            nbr_pos = np.array([tick.positions[j] for j in self._nbrs]).reshape(-1, self.q.size)
-            u = self.controller.control(self.q, self.p, x_next[:d], x_next[d:2 * d], nbr_pos)
-            self.q, self.p = integrate_double_integrator(self.q, self.p, u, self.T)
-        self.publish(f"agent/{self.i}/state", State(src=self.i, k=self.k, pos=self.q.copy(), vel=self.p.copy()))
+            with self.timing.spent("compute"):
+                d, tick = self.pos_dims, self._ticks[self.k]
+                nbr_pos = np.array([tick.positions[j] for j in self._nbrs]).reshape(-1, self.q.size)
+                u = self.controller.control(self.q, self.p, x_next[:d], x_next[d:2 * d], nbr_pos)
+                self.q, self.p = integrate_double_integrator(self.q, self.p, u, self.T)
+        with self.timing.spent("publish"):
+            self.publish(f"agent/{self.i}/state", State(src=self.i, k=self.k, pos=self.q.copy(), vel=self.p.copy()))
+        self.timing.end()
         self.r = -1
         self._next_tick()
         self._try_begin()

@@ -224,7 +224,8 @@ def _status_line(sc: Scenario, run: str, launcher: Launcher, keys):
         st = RunStatus(run, launcher.endpoint, sc.run.ticks, sc.sensors.n, sc.pos_dims, target_rate=rate,
                        config_file=str(keys.client("recorder-0")) if keys is not None else None,
                        deadlines=lambda: launcher.deadlines,
-                       processes=sum(1 for c in launcher.children.values() if not c.service))
+                       processes=sum(1 for c in launcher.children.values() if not c.service),
+                       rounds=sc.estimator.rounds)
     except Exception as exc:  # a status line is a convenience, never a reason to fail a run
         print(f"warning: no status line ({exc})", file=sys.stderr)
         return None

@@ -29,9 +29,11 @@ class StatusBoard:
 
     def __init__(self, ticks: int, n: int, pos_dims: int, *, target_rate: float | None = None,
                  deadlines: Callable[[], int] = lambda: 0, processes: int | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, rounds: int | None = None):
         self.ticks, self.n, self.d, self.target_rate = int(ticks), int(n), int(pos_dims), target_rate
         self.deadlines, self.clock = deadlines, clock
+        self.rounds = rounds              # exchange rounds per sensor and tick (the pace warning's denominator)
+        self._pace: tuple[float, int, int] | None = None   # (time, tick, deadlines) at the window's start
         self.k = -1
         self.done = False                 # world/end seen: every tick is through
         self.alive = 0
@@ -90,6 +92,27 @@ class StatusBoard:
         (t0, k0), (t1, k1) = self._stamps[0], self._stamps[-1]
         return (k1 - k0) / (t1 - t0) if t1 > t0 else None
 
+    def pace_warning(self, window_s: float = 10.0, share: float = 0.05) -> str | None:
+        """Once every ``window_s`` of a realtime run: when at least ``share`` of the flock's exchange rounds in
+        the window ended by deadline (a payload that did not come in time), what to do about it."""
+        if not self.target_rate or not self.rounds or self.k < 0 or self.done:
+            return None
+        now, d = self.clock(), self.deadlines()
+        if self._pace is None:
+            self._pace = (now, self.k, d)
+            return None
+        t0, k0, d0 = self._pace
+        if now - t0 < window_s:
+            return None
+        self._pace = (now, self.k, d)
+        rounds = (self.k - k0) * max(self.alive, 1) * self.rounds
+        missed = (d - d0) / rounds if rounds > 0 else 0.0
+        if missed < share:
+            return None
+        return (f"{100 * min(missed, 1.0):.0f} % of rounds missed in the last {now - t0:.0f} s "
+                f"({d - d0} deadlines in {self.k - k0} ticks): the machine cannot keep this rate — lower "
+                f"run.speed or sensors.n")
+
     def line(self) -> str:
         if self.k < 0 and not self.done and self.processes:
             up = len([m for m in self.members if not m.startswith("launcher/")])
@@ -112,10 +135,12 @@ class RunStatus(StatusBoard):
     on ``stream`` (stderr)."""
 
     def __init__(self, run: str, endpoint: str, ticks: int, n: int, pos_dims: int, *, target_rate: float | None,
-                 config_file: str | None = None, stream=None, deadlines=lambda: 0, processes: int | None = None):
+                 config_file: str | None = None, stream=None, deadlines=lambda: 0, processes: int | None = None,
+                 rounds: int | None = None):
         from agent.bus import ZenohBus
 
-        super().__init__(ticks, n, pos_dims, target_rate=target_rate, deadlines=deadlines, processes=processes)
+        super().__init__(ticks, n, pos_dims, target_rate=target_rate, deadlines=deadlines, processes=processes,
+                         rounds=rounds)
         self.stream = stream or sys.stderr
         self.tty = self.stream.isatty()
         self._last_draw = 0.0
@@ -126,8 +151,12 @@ class RunStatus(StatusBoard):
         self.bus.watch_members(self.on_member)
 
     def poll(self) -> None:
-        """Take in what arrived; redraw when due."""
+        """Take in what arrived; redraw when due; warn when the run cannot keep its rate."""
         self.bus.poll(0)
+        warning = self.pace_warning()
+        if warning is not None:
+            self.clear()
+            print(f"warning: {warning}", file=self.stream, flush=True)
         now = time.monotonic()
         if self.tty:
             if now - self._last_draw >= 0.25:

@@ -46,6 +46,25 @@ def test_world_link_faults_and_heal():
     assert not w.apply_control("no_such_verb", {})
 
 
+def test_late_states_are_each_counted_and_logged_a_line_a_second(caplog):
+    """An overloaded flock's states arrive after their tick closed by the hundred: every one is counted, the
+    log gets one line (with the count) per second, not one per state."""
+    import logging
+
+    from agent.wire import State
+
+    sc = load_scenario(SCEN / "gu_hu_normal.toml")
+    w = build_world(sc)
+    w.attach(LocalBus())
+    w.k = 5
+    with caplog.at_level(logging.INFO, logger="topology.world"):
+        for i in range(300):
+            w._on_state("agent/1/state", State(src=1, k=i % 5, pos=np.zeros(2), vel=np.zeros(2)))
+    assert w.stats["late_states"] == 300
+    lines = [r.getMessage() for r in caplog.records if "after their tick closed" in r.getMessage()]
+    assert len(lines) == 1 and ": 1 since the last such line" in lines[0]
+
+
 def test_a_paused_realtime_world_holds_its_clock_through_deadlines():
     sc = load_scenario(SCEN / "gu_hu_normal.toml")
     w = build_world(sc, realtime=True)

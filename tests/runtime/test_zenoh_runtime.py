@@ -1,5 +1,6 @@
 """The process-per-agent runtime over a real Zenoh router on loopback, with real OS processes."""
 
+import csv
 import json
 import signal
 import subprocess
@@ -8,6 +9,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from agent import wire
@@ -64,6 +66,14 @@ def test_zenoh_lockstep_equals_inproc_and_recording_is_faithful(tmp_path, name, 
     addressed = Counter({k: v for k, v in sent.items() if wire.addressed(k)})
     assert dict(sent - addressed) == recorded and sum(sent.values()) > 0
     n = b["n_sensors"]
+    for i in range(n):     # where each sensor's ticks went: a row per tick in its stats
+        with (tmp_path / "z" / "stats" / f"agent-{i}-ticks.csv").open() as f:
+            rows = list(csv.DictReader(f))
+        assert [int(r["k"]) for r in rows] == list(range(ticks)), i
+        assert all(int(r["deadline_rounds"]) == 0 and int(r["rounds"]) >= 1 for r in rows)   # lockstep
+        t = {c: np.array([float(r[c]) for r in rows]) for c in ("compute_ms", "publish_ms", "wait_ms", "total_ms")}
+        assert t["compute_ms"].sum() > 0 and t["publish_ms"].sum() > 0 and min(v.min() for v in t.values()) >= 0
+        assert np.all(t["total_ms"] + 1e-3 >= t["compute_ms"] + t["publish_ms"] + t["wait_ms"])
     for i in range(n):     # each payload went to this tick's neighbours only, never to everyone
         to_nbrs = sum(v for k, v in addressed.items() if k.startswith(f"agent/{i}/to/"))
         assert 0 < to_nbrs < (n - 1) * sent[f"agent/{i}/xchg"], (i, to_nbrs, sent[f"agent/{i}/xchg"])
