@@ -5,12 +5,13 @@ For tick k the sensor records, in milliseconds:
 * ``start_ms``   — from the world's tick reaching the process to the sensor beginning the tick (waiting for the
   target's truth, or for its own previous tick to finish);
 * ``compute_ms`` — the estimator's and the controller's work on the role's thread (measure, start, every round's
-  absorb, finish, control);
-* ``publish_ms`` — encoding and handing over its messages (meas, each round's payloads, estimate, state);
-* ``wait_ms``    — the rest of the tick on the role's thread: waiting for the neighbours' payloads;
-* ``receive_ms`` — the process's CPU during the tick that was not the role's compute or publishing: what its
-  transport threads spent receiving, decoding and routing messages (CPU of every thread of the process, so on
-  a busy machine this is the part of the cost that grows with the neighbours' traffic);
+  absorb, finish, control), wall time;
+* ``publish_ms`` — encoding and handing over its messages (meas, each round's payloads, estimate, state), wall
+  time;
+* ``wait_ms``    — the rest of the tick on the role's thread: waiting for the neighbours' payloads (and
+  decoding them as they come);
+* ``receive_ms`` — the process's CPU during the tick less the role thread's CPU in compute and publish: what the
+  process spent receiving — the transport's threads and the decoding and validating of every message that came;
 * ``cpu_ms``, ``total_ms`` — the process's CPU and the wall time from the tick's arrival to its state sent;
 * ``rounds``, ``deadline_rounds`` — the exchange rounds, and how many of them ended by deadline (a payload
   that did not come in time).
@@ -34,10 +35,10 @@ class TickTiming:
     """The timing rows of one sensor; ``path`` the CSV they go to (None: kept in memory, the last ``keep``)."""
 
     def __init__(self, path: str | Path | None = None, *, batch: int = 100, keep: int = 1000,
-                 clock=time.monotonic, cpu=time.process_time):
+                 clock=time.monotonic, cpu=time.process_time, thread_cpu=time.thread_time):
         self.path = None if path is None else Path(path)
         self.batch, self.keep = int(batch), int(keep)
-        self.clock, self.cpu = clock, cpu
+        self.clock, self.cpu, self.thread_cpu = clock, cpu, thread_cpu
         self.rows: list[tuple] = []
         self._written = False
         self._open: dict | None = None
@@ -46,17 +47,19 @@ class TickTiming:
         """Tick ``k`` begins now; its world tick reached the process at ``arrived`` (``clock`` time)."""
         now = self.clock()
         self._open = {"k": k, "arrived": now if arrived is None else arrived, "begin": now, "cpu": self.cpu(),
-                      "compute": 0.0, "publish": 0.0, "rounds": 0, "deadline_rounds": 0}
+                      "compute": 0.0, "publish": 0.0, "busy_cpu": 0.0, "rounds": 0, "deadline_rounds": 0}
 
     @contextmanager
     def spent(self, kind: str):
-        """Time the block as ``compute`` or ``publish`` of the open tick (nothing when none is open)."""
-        t0 = self.clock()
+        """Time the block as ``compute`` or ``publish`` of the open tick (nothing when none is open): its wall
+        time, and its CPU on this thread (what ``receive_ms`` leaves out)."""
+        t0, c0 = self.clock(), self.thread_cpu()
         try:
             yield
         finally:
             if self._open is not None:
                 self._open[kind] += self.clock() - t0
+                self._open["busy_cpu"] += self.thread_cpu() - c0
 
     def round_closed(self, by_deadline: bool) -> None:
         if self._open is not None:
@@ -71,7 +74,8 @@ class TickTiming:
         now, cpu = self.clock(), self.cpu() - o["cpu"]
         busy = o["compute"] + o["publish"]
         row = (o["k"], _ms(o["begin"] - o["arrived"]), _ms(o["compute"]), _ms(o["publish"]),
-               _ms(max(now - o["begin"] - busy, 0.0)), _ms(max(cpu - busy, 0.0)), _ms(cpu), _ms(now - o["arrived"]),
+               _ms(max(now - o["begin"] - busy, 0.0)), _ms(max(cpu - o["busy_cpu"], 0.0)), _ms(cpu),
+               _ms(now - o["arrived"]),
                o["rounds"], o["deadline_rounds"])
         self.rows.append(row)
         if self.path is not None and len(self.rows) >= self.batch:

@@ -14,19 +14,21 @@ class Clock:
 
 
 def test_a_tick_is_split_into_start_compute_publish_and_wait(tmp_path):
-    wall, cpu = Clock(), Clock()
-    tt = TickTiming(tmp_path / "agent-0-ticks.csv", batch=2, clock=wall, cpu=cpu)
+    wall, cpu, thread = Clock(), Clock(), Clock()
+    tt = TickTiming(tmp_path / "agent-0-ticks.csv", batch=2, clock=wall, cpu=cpu, thread_cpu=thread)
     for k in range(3):
         arrived = wall.t
         wall.t += 0.004                       # 4 ms until the truth came
         tt.begin(k, arrived)
         with tt.spent("compute"):
             wall.t += 0.002
+            thread.t += 0.002
         with tt.spent("publish"):
             wall.t += 0.001
+            thread.t += 0.001
         wall.t += 0.010                       # waiting for a neighbour
         tt.round_closed(by_deadline=(k == 1))
-        cpu.t += 0.005                        # 3 ms of it the role's, 2 ms the transport's
+        cpu.t += 0.005                        # 3 ms of it the role's compute and publish, 2 ms receiving
         row = tt.end()
         assert row[1:8] == (4.0, 2.0, 1.0, 10.0, 2.0, 5.0, 17.0) and row[8] == 1
     assert tt.end() is None                   # no tick open
