@@ -19,19 +19,10 @@ from dashboards.live import LiveDashboard, load_recording, replay_model_from_fil
 from dashboards.state import (DashboardState, RateMeter, RunInfo, algebraic_connectivity_of_links,
                               synthetic_tick)
 
+from dashboard_feed import feed
+
 ROOT = Path(__file__).resolve().parents[2]
 SCEN = ROOT / "scenarios"
-
-
-def feed(st: DashboardState, msgs, t0: float = 0.0, dt: float = 0.1, k0: int = 0):
-    """Feed per-tick message lists, tick j at time t0 + j·dt."""
-    for j, tick in enumerate(msgs):
-        now = t0 + (k0 + j) * dt
-        for key, m in tick:
-            if m is None:
-                st.count(now)
-            else:
-                st.ingest(key, m, now)
 
 
 def synth(n, ticks, **kw):

@@ -16,15 +16,7 @@ from dashboards.state import DashboardState, RunInfo, synthetic_tick, valid_susp
 from dashboards.tabs import inspect_text, selection_label
 
 from conftest import ROOT
-
-
-def feed(st: DashboardState, ticks, dt: float = 0.1) -> None:
-    for k, msgs in enumerate(ticks):
-        for key, m in msgs:
-            if m is None:
-                st.count(k * dt)
-            else:
-                st.ingest(key, m, k * dt)
+from dashboard_feed import feed
 
 
 def with_suspects(msgs, suspects: dict):
