@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
-    "range_adjacency", "degrees", "max_degree", "laplacian", "neighbour_lists", "edge_weights",
+    "range_adjacency", "lists_adjacency", "degrees", "max_degree", "laplacian", "neighbour_lists", "edge_weights",
     "components", "is_connected", "algebraic_connectivity", "h_matrix", "target_connected",
     "lambda0", "GraphSpec", "PeriodicSchedule", "chen_example_schedule",
 ]
@@ -88,6 +88,16 @@ def laplacian(adj: np.ndarray) -> np.ndarray:
     """Weighted Laplacian L = D − G (rows sum to zero)."""
     a = _as_adj(adj)
     return np.diag(a.sum(axis=1)) - a
+
+
+def lists_adjacency(links) -> np.ndarray:
+    """The 0/1 adjacency (float) of neighbour lists: gᵢⱼ = 1 for each j in ``links[i]`` (a tick's link
+    table, as the world sends it: the inverse of :func:`neighbour_lists`)."""
+    n = len(links)
+    adj = np.zeros((n, n))
+    for i, nb in enumerate(links):
+        adj[i, list(nb)] = 1.0
+    return adj
 
 
 def neighbour_lists(adj: np.ndarray) -> list[list[int]]:

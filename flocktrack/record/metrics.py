@@ -29,7 +29,7 @@ import numpy as np
 from agent.estimators.registry import specs
 from agent.estimators.spec import RunTrace
 from agent.wire import Control, Estimate, Meas, Message, State, Tick, Truth, WireError, fault_event
-from topology.graph import algebraic_connectivity, is_connected
+from topology.graph import algebraic_connectivity, is_connected, lists_adjacency
 
 
 def summary_identity(sc) -> dict:
@@ -356,11 +356,7 @@ class MetricsCollector:
 def _graph_metrics(links: tuple[tuple[int, ...], ...]) -> tuple[int, float, int]:
     """(undirected links, λ₂, connected) of a tick's neighbour lists — the graph changes far less often
     than every tick, so the eigen-solve is cached by the lists."""
-    n = len(links)
-    adj = np.zeros((n, n))
-    for i, nb in enumerate(links):
-        for j in nb:
-            adj[i, j] = 1.0
+    adj = lists_adjacency(links)
     return int(adj.sum() // 2), float(algebraic_connectivity(adj)), int(is_connected(adj))
 
 

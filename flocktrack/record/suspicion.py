@@ -19,11 +19,13 @@ the degrees beyond — and the report counts the ticks verified robust enough (`
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Mapping
 
 import numpy as np
 
+from topology.graph import lists_adjacency
 from topology.robustness import is_r_robust
 
 log = logging.getLogger(__name__)
@@ -74,17 +76,7 @@ def _neighbours(links: tuple, a: int) -> list[int]:
 def robustness_report(links: Mapping[int, tuple], f: int) -> dict:
     """Which ticks' graphs (``links``: tick → each node's neighbours) are (2f + 1)-robust, as W-MSR with f needs."""
     need = 2 * f + 1
-    seen: dict[tuple, bool | None] = {}
-    verdict: dict[int, bool | None] = {}
-    for k, ls in links.items():
-        key = tuple(tuple(sorted(int(j) for j in nb)) for nb in ls)
-        if key not in seen:
-            n = len(key)
-            A = np.zeros((n, n), bool)
-            for i, nb in enumerate(key):
-                A[i, [j for j in nb if 0 <= j < n and j != i]] = True
-            seen[key] = is_r_robust(A | A.T, need) if n else None
-        verdict[k] = seen[key]
+    verdict = {k: _robust(tuple(map(tuple, ls)), need) for k, ls in links.items()}
     low = sorted(k for k, v in verdict.items() if v is False)
     if low:
         log.warning("the link graph is not %d-robust, as W-MSR with f = %d needs, at %d ticks (the first: tick %d)",
@@ -92,3 +84,13 @@ def robustness_report(links: Mapping[int, tuple], f: int) -> dict:
     return {"f": f, "required_r": need, "ticks_robust": sum(v is True for v in verdict.values()),
             "ticks_not_robust": len(low), "ticks_unknown": sum(v is None for v in verdict.values()),
             "first_tick": low[0] if low else None}
+
+
+@functools.lru_cache(maxsize=256)
+def _robust(links: tuple[tuple[int, ...], ...], r: int) -> bool | None:
+    """:func:`topology.robustness.is_r_robust` of a tick's neighbour lists (cached: the graph changes far less
+    often than every tick); None for an empty graph."""
+    if not links:
+        return None
+    A = lists_adjacency(links) > 0
+    return is_r_robust(A | A.T, r)
