@@ -812,6 +812,24 @@ def decode(key: str, data: bytes) -> Message:
     return msg
 
 
+def valid_suspects(i: int, values, n: int) -> tuple[np.ndarray, int]:
+    """The sensor ids in ``values`` (``Estimate.aux["suspected"]`` of sensor ``i``) that can be suspects:
+    integers in 0 … n − 1 other than ``i``, each once, sorted; and how many values were dropped (not
+    finite, not an integer, out of range, ``i`` itself, a repeat — or everything, when ``values`` is not
+    numeric at all)."""
+    try:
+        a = np.asarray(values)
+    except (TypeError, ValueError, OverflowError):     # (a ragged list)
+        return np.zeros(0, int), 1
+    if a.dtype.kind not in "iuf":                       # text, objects, booleans: nothing to read an id from
+        return np.zeros(0, int), max(a.size, 1)
+    a = a.astype(float).reshape(-1)
+    with np.errstate(all="ignore"):
+        ok = np.isfinite(a) & (a == np.floor(a)) & (a >= 0) & (a < n) & (a != i)
+    ids = np.unique(a[ok]).astype(int)
+    return ids, int(a.size - ids.size)
+
+
 def int_list(v: Any, lo: int = 0, hi: int = MAX_LIST_LEN) -> list[int] | None:
     """A Control arg that must be a list of integers in [lo, hi) (numbers arrive as floats); None if not."""
     if not isinstance(v, list):

@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.wire import Control, End, Estimate, Message, State, Tick, Truth
+from agent.wire import Control, End, Estimate, Message, State, Tick, Truth, valid_suspects
 
 from .nees import network_nees
 
@@ -178,24 +178,6 @@ class Snapshot:
     def suspects_of(self, i: int) -> list[int]:
         """Whom sensor ``i`` suspected at this tick."""
         return [int(j) for a, j in self.suspicions if a == i]
-
-
-def valid_suspects(i: int, values, n: int) -> tuple[np.ndarray, int]:
-    """The sensor ids in ``values`` (``Estimate.aux["suspected"]`` of sensor ``i``) that can be suspects:
-    integers in 0 … n − 1 other than ``i``, each once, sorted; and how many values were dropped (not
-    finite, not an integer, out of range, ``i`` itself, a repeat — or everything, when ``values`` is not
-    numeric at all)."""
-    try:
-        a = np.asarray(values)
-    except (TypeError, ValueError, OverflowError):     # (a ragged list)
-        return np.zeros(0, int), 1
-    if a.dtype.kind not in "iuf":                       # text, objects, booleans: nothing to read an id from
-        return np.zeros(0, int), max(a.size, 1)
-    a = a.astype(float).reshape(-1)
-    with np.errstate(all="ignore"):
-        ok = np.isfinite(a) & (a == np.floor(a)) & (a >= 0) & (a < n) & (a != i)
-    ids = np.unique(a[ok]).astype(int)
-    return ids, int(a.size - ids.size)
 
 
 def _pad3(p: np.ndarray) -> np.ndarray:

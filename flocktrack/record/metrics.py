@@ -28,7 +28,8 @@ import numpy as np
 
 from agent.estimators.registry import specs
 from agent.estimators.spec import RunTrace
-from agent.wire import Control, Estimate, Meas, Message, State, Tick, Truth, WireError, fault_event
+from agent.wire import (Control, Estimate, Meas, Message, State, Tick, Truth, WireError, fault_event,
+                        valid_suspects)
 from topology.graph import algebraic_connectivity, is_connected, lists_adjacency
 
 
@@ -238,12 +239,17 @@ class MetricsCollector:
 
         out: dict = {}
         links = {k: t.links for k, t in self._ticks.items()}
-        suspected = {k: {i: aux["suspected"] for i, aux in by.items() if "suspected" in aux}
-                     for k, by in self._eps.items()}
-        suspected = {k: by for k, by in suspected.items() if by}
+        suspected: dict[int, dict[int, np.ndarray]] = {}
+        invalid = 0         # values of aux["suspected"] that name no possible suspect (dropped, as the dashboard does)
+        for k, by in self._eps.items():
+            for i, aux in by.items():
+                if "suspected" in aux:
+                    ids, bad = valid_suspects(i, aux["suspected"], self.n)
+                    suspected.setdefault(k, {})[i] = ids
+                    invalid += bad
         if suspected:
             attacks = attack_ticks(self._byzantine, self.ticks)
-            out["suspicion"] = suspicion_report(suspected, links, attacks)
+            out["suspicion"] = suspicion_report(suspected, links, attacks) | {"invalid_suspects": invalid}
         if self.resilient_f > 0 and links:
             out["robustness"] = robustness_report(links, self.resilient_f)
         return out

@@ -43,3 +43,23 @@ def test_robustness_is_decided_exactly_not_only_by_the_degrees():
     full = tuple(tuple(j for j in range(10) if j != i) for i in range(10))
     r = robustness_report({0: full, 1: full}, f=2)
     assert (r["ticks_robust"], r["ticks_not_robust"], r["ticks_unknown"]) == (2, 0, 0)
+
+
+def test_a_hostile_suspect_list_is_dropped_and_counted_not_a_crash_of_the_summary():
+    """Whom a sensor says it discarded comes off the wire: NaN, out-of-range ids, itself and repeats are
+    left out of the scoring and counted (the same reading as the dashboard's: agent.wire.valid_suspects)."""
+    from agent.wire import Estimate, Tick
+    from flocktrack.record.metrics import MetricsCollector
+
+    m = MetricsCollector(3, 4, 2, resilient_f=1)
+    links = [[1, 2], [0, 2], [0, 1]]
+    for k in range(4):
+        m.ingest("world/tick", Tick(k=k, t=0.1 * k, n=3, links=links, weights=[[1.0, 1.0]] * 3, b=[1.0] * 3,
+                                    delta_max=2, alive=[True] * 3, positions=np.zeros((3, 2))))
+        for i in range(3):
+            sus = np.array([np.nan, 7.0, float(i), 1.0, 1.0]) if i == 0 else np.zeros(0)
+            m.ingest(f"agent/{i}/estimate", Estimate(src=i, k=k, x=np.zeros(4), x_next=np.zeros(4), name="kf",
+                                                     aux={"suspected": sus}))
+    s = m.resilience()["suspicion"]
+    assert s["invalid_suspects"] == 4 * 4          # NaN, 7, itself, a repeat of 1 — each tick
+    assert s["false_suspicions"] == 4 and s["node_ticks"] == 12     # sensor 0 suspected honest sensor 1
