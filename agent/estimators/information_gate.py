@@ -127,7 +127,7 @@ class InformationGate:
         m, n = self._run.get(j, (np.zeros_like(z), 0))
         m, n = (1 - LAMBDA) * m + LAMBDA * z, n + 1
         self._run[j] = (m, n)
-        scale = LAMBDA / (2 - LAMBDA) * (1 - (1 - LAMBDA) ** (2 * n))
+        scale = _ewma_variance(n)
         return float(m @ self._S_inv @ m) / scale > self.run_threshold
 
     def _spread_off(self, j: int, r: int, z: np.ndarray) -> bool:
@@ -143,9 +143,15 @@ class InformationGate:
         if n < WARMUP:
             return False
         Vn = V / (1 - (1 - LAMBDA_V) ** n)          # the EWMA's start-up bias removed
-        scale = LAMBDA / (2 - LAMBDA) * (1 - (1 - LAMBDA) ** (2 * n))
+        scale = _ewma_variance(n)
         try:
             t = float(m @ np.linalg.solve(Vn, m))
         except np.linalg.LinAlgError:
             return False
         return t / scale > self.spread_threshold
+
+
+def _ewma_variance(n: int) -> float:
+    """The variance of a running mean m ← (1 − λ) m + λ z after ``n`` updates from 0, per unit variance of z:
+    (λ / (2 − λ)) (1 − (1 − λ)^{2n}), λ = ``LAMBDA``."""
+    return LAMBDA / (2 - LAMBDA) * (1 - (1 - LAMBDA) ** (2 * n))
