@@ -35,7 +35,9 @@ def role_budget(sc, mode: str, role: str, *, depth: int = 0) -> WaitBudget:
     sensor (the window: a sensor that begins late gets what is left of the tick, not a whole new schedule,
     so a stall costs the ticks it hits — without it, 40 sensors at 10 Hz lost ~8 ticks of ~90 missed
     deadlines after one 37 ms freeze of the machine); an intelligent target waits for the estimates until
-    half the tail is left. Every wait of the warm-up tick 0 gets two periods."""
+    half the tail is left. Every wait of the warm-up tick 0 gets two periods. A tick that announces another period
+(``Tick.period``: the world stretched under overload, topology/pace.py, or the run's speed changed) gets the
+same schedule in proportion (:meth:`agent.runner.WaitBudget.scaled`)."""
     if mode == "lockstep":
         return WaitBudget.lockstep(sc.run.deadline_s, rounds=sc.estimator.rounds, depth=depth)
     period = sc.run.T / sc.run.speed
@@ -43,9 +45,9 @@ def role_budget(sc, mode: str, role: str, *, depth: int = 0) -> WaitBudget:
     tail = min(2 * period / (R + 3), TAIL_MAX_S)
     if role == "sensor":
         return WaitBudget((period - tail) / (R + 1), schedule=True, head=1, warmup_s=2 * period,
-                          window_s=period - tail / 2)
+                          window_s=period - tail / 2, period_s=period)
     if role == "target":
-        return WaitBudget(period - tail / 2, warmup_s=2 * period)
+        return WaitBudget(period - tail / 2, warmup_s=2 * period, period_s=period)
     return WaitBudget(period / 2, warmup_s=2 * period)
 
 

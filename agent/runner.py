@@ -13,7 +13,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from .ports import slug
@@ -139,6 +139,23 @@ class WaitBudget:
     head: float = 0.0
     warmup_s: float | None = None
     window_s: float | None = None
+    period_s: float | None = None   #: realtime: the period the budget was made for (see :meth:`scaled`)
+
+    #: a step's announced period is taken within this factor of the nominal one (a hostile tick cannot make a
+    #: sensor wait for hours or not at all)
+    MAX_SCALE = 64.0
+
+    def scaled(self, period_s: float | None) -> WaitBudget:
+        """This budget for a step that lasts ``period_s`` instead of :attr:`period_s` (the realtime world
+        stretches its period while the flock cannot keep it, topology/pace.py; a live speed change sets a new
+        one): slots and window in proportion; the warm-up as it is. Unchanged in lockstep or without a period."""
+        if self.period_s is None or not period_s or period_s <= 0:
+            return self
+        f = min(self.MAX_SCALE, max(1.0 / self.MAX_SCALE, period_s / self.period_s))
+        if f == 1.0:
+            return self
+        return replace(self, slot_s=self.slot_s * f, window_s=None if self.window_s is None else self.window_s * f,
+                       period_s=self.period_s * f)
 
     @classmethod
     def lockstep(cls, deadline_s: float, *, rounds: int, depth: int) -> WaitBudget:
@@ -213,6 +230,7 @@ def drive(role: Role, bus, name: str, deadline_s: float | WaitBudget, stop: Stop
 def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, *, idle_s: float) -> None:
     last_key, due = None, float("inf")
     step_began, anchor = time.monotonic(), None
+    nominal, budget = budget, budget
     while not role.finished and not stop.set:
         # wake for the next message, the current wait's deadline, the role's timer or the idle poll, which first
         timer = role.next_timer()
@@ -225,6 +243,7 @@ def _loop(role: Role, bus, name: str, budget: WaitBudget, stop: StopFlag, *, idl
         if key != last_key:
             if key is not None and (last_key is None or key[0] != last_key[0]):
                 step_began, anchor = now, role.step_anchor(key[0])
+                budget = nominal.scaled(role.step_period(key[0]))
             last_key = key
             due = float("inf") if key is None else budget.due(key, now, step_began, anchor)
         elif key is not None and now >= due:

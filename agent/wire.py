@@ -222,6 +222,7 @@ class Tick(Message):
     delta_max: int = 0
     alive: list[bool] = field(default_factory=list)
     positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    period: float = 0.0   #: realtime: the wall-clock seconds this tick lasts (topology/pace.py); 0 in lockstep
 
     @classmethod
     def _fields_from_wire(cls, d: dict) -> dict:
@@ -240,7 +241,7 @@ class Tick(Message):
         fb = _floats(b, "b[i]")
         return dict(t=_float(d.get("t"), "t"), n=n, links=links, weights=_numbers(weights, links),
                     b=b if fb is None else fb, delta_max=_int(d.get("delta_max"), "delta_max", 0, n),
-                    alive=alive, positions=pos)
+                    alive=alive, positions=pos, period=_float(d.get("period", 0.0), "period"))
 
 
 def _numbers(weights: list, links: list) -> list[list[float]]:

@@ -63,7 +63,7 @@ def run(kind: str, trials: int, period: int, speed: float, out: Path) -> Path:
 def _index(path: Path):
     rec = read_recording(path)
     ticks, truth, est, events = {}, {}, defaultdict(dict), []
-    for key, m, t in rec.messages:
+    for (key, m, _), t in zip(rec.messages, rec.wall):   # t: when it was recorded (wall clock, ns)
         if key == "world/tick":
             ticks[m.k] = (t, m)
         elif key == "target/truth":

@@ -141,9 +141,11 @@ def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
         _summary, info = run_zenoh_to_dir(sc, data, Path(d), quiet=True, on_poll=hook, timeout_s=1800)
         rec = read_recording(Path(d) / "recording.mcap")
         bus = [json.loads((Path(d) / "stats" / f"agent-{i}.json").read_text()) for i in range(n)]
-    t_tick = {m.k: t for key, m, t in rec.messages if key == "world/tick"}
+    # when each message was recorded (the wall clock, ns; the log time is the simulated k·T)
+    timed = [(key, m, t) for (key, m, _), t in zip(rec.messages, rec.wall)]
+    t_tick = {m.k: t for key, m, t in timed if key == "world/tick"}
     t_end = {}
-    for key, m, t in rec.messages:
+    for key, m, t in timed:
         if key.endswith("/xchg"):
             t_end[(m.k, m.r)] = max(t_end.get((m.k, m.r), 0), t)
     lat = []

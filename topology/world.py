@@ -9,8 +9,10 @@ At tick k the world publishes ``tick`` {k, t, links, weights, b, δ_max, alive, 
 
 It then waits for every alive sensor's ``state`` k and the target's ``state`` k (or the deadline),
 and starts tick k+1 — in realtime, its clock closes tick k at t0 + (k+1)·T/speed whatever has arrived, except
-tick 0, the warm-up (routes and publishers being set up), which closes on its states. It is the only role
-that knows all positions.
+tick 0, the warm-up (routes and publishers being set up), which closes on its states. While the flock cannot
+keep that pace (its states come late or not at all) the realtime clock yields — the period stretches and comes
+back once the flock keeps up (pace.py) — and each tick announces its period. It is the only role that knows
+all positions.
 
 Process faults (crash, pause, router_restart) are executed by the launcher. In lockstep, when a launcher
 is a member of the run (its liveliness token ``launcher/0``), the world publishes such a fault's
@@ -40,6 +42,7 @@ from agent.scenario import FaultsCfg, Scenario, ScenarioError, parse_fault_event
 from .fault_hold import FaultHold
 from .faults import FaultPlan
 from .graph import GraphSpec, PeriodicSchedule, edge_weights, max_degree, neighbour_lists, range_adjacency
+from .pace import PaceGovernor
 
 
 def schedule_of(sc: Scenario) -> PeriodicSchedule | None:
@@ -91,7 +94,10 @@ class WorldRole(Role):
         self._held_graph: tuple[np.ndarray, list[float]] | None = None   # held tick's links before the dead mask
         self.realtime = bool(realtime)
         self.period = float(T) / float(speed)  # wall-clock seconds per tick in realtime
+        self.pace = PaceGovernor(self.period)  # … stretched while the flock cannot keep it (pace.py)
         self._t0: float | None = None
+        self._opened_at = 0.0                   # when the open tick was published (monotonic)
+        self._arrivals: list[float] = []        # … and its states came, seconds after that
         self._expected: set[int] = set()
         self.stats = {"late_states": 0, "missing_states": 0, "controls": 0}
         self._late_logged_at, self._late_unlogged = -float("inf"), 0   # (the late states' log line)
@@ -190,13 +196,16 @@ class WorldRole(Role):
     def _set_speed(self, factor: float) -> None:
         """Realtime pace T / factor; the current tick keeps its phase (t0 is re-anchored so that the elapsed
         ticks stay where they are)."""
+        self.pace.set_nominal(self.T / factor)
+        self._set_period(self.pace.period, time.monotonic())
+
+    def _set_period(self, period: float, at: float) -> None:
+        """The realtime period from now on; the tick under way keeps its phase (t0 re-anchored at ``at`` so
+        that the elapsed ticks stay where they are)."""
         if self._t0 is not None:
-            now = time.monotonic()
-            elapsed_ticks = (now - self._t0) / self.period
-            self.period = self.T / factor
-            self._t0 = now - elapsed_ticks * self.period
-        else:
-            self.period = self.T / factor
+            elapsed_ticks = (at - self._t0) / self.period
+            self._t0 = at - elapsed_ticks * period
+        self.period = period
 
     def _next_k(self) -> int:
         """The tick a control received now takes effect on (the open one has been published already)."""
@@ -351,8 +360,11 @@ class WorldRole(Role):
 
     def _emit_tick(self, g: tuple[np.ndarray, list[float]]) -> None:
         self.last_tick = self.make_tick(self.k, g)
+        if self.realtime:
+            self.last_tick.period = self.period
         self._expected = {i for i in range(self.n) if self.alive[i]}
         self._open = True
+        self._opened_at, self._arrivals = time.monotonic(), []
         self.publish("world/tick", self.last_tick)
 
     def _on_launcher_event(self, key: str, msg: Message) -> None:
@@ -390,11 +402,26 @@ class WorldRole(Role):
             self.stats["rejected_states"] = self.stats.get("rejected_states", 0) + 1
             return
         if msg.k == self.k and msg.src < self.n:
+            if msg.src not in self._states:
+                self._arrivals.append(time.monotonic() - self._opened_at)
             self._states[msg.src] = msg
             self._check()
         elif msg.k < self.k:
             self.stats["late_states"] += 1
             self._log_late(msg)
+
+    def _govern_pace(self) -> None:
+        """Realtime, a tick closing: the next one's period from when this one's states came (pace.py)."""
+        before = self.pace.period
+        period = self.pace.close(len(self._expected), self._arrivals)
+        if period != before:
+            self._set_period(period, self._t0 + (self.k + 1) * self.period)   # from this tick's close on
+            if before == self.pace.nominal or period == self.pace.nominal:
+                log.info("world: tick %d: the flock %s; the period is %.0f ms (nominal %.0f ms)", self.k,
+                         "cannot keep its pace" if period > before else "keeps its pace again", period * 1e3,
+                         self.pace.nominal * 1e3)
+        self.stats["pace_stretched_ticks"] = self.pace.stretched_ticks
+        self.stats["pace_max_stretch"] = self.pace.max_stretch
 
     def _log_late(self, msg: State, every_s: float = 1.0) -> None:
         """A state that came after its tick closed: logged at most once every ``every_s`` seconds, with the
@@ -439,6 +466,8 @@ class WorldRole(Role):
             # on the run's record too (recordings, the Foxglove log, flocktrack.load's events): at most one a tick
             self.publish("world/event", Control(k=self.k, verb="late", args={"missing": len(missing),
                                                                              "agents": sorted(missing)[:64]}))
+        if self.realtime and self._t0 is not None:
+            self._govern_pace()
         for i, s in self._states.items():
             self.positions[i] = s.pos[: self.positions.shape[1]]
         if self._target_state is not None:

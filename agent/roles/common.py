@@ -80,6 +80,12 @@ class Role:
         from it (agent/runner.py WaitBudget.window_s)."""
         return None
 
+    def step_period(self, k: int) -> float | None:
+        """The wall-clock seconds step ``k`` lasts, as the realtime world announced it (``Tick.period``: the
+        pace it keeps, stretched under overload — topology/pace.py), or None: the nominal T / speed. The driver
+        fits the step's waits into it (agent/runner.py WaitBudget.scaled)."""
+        return None
+
     def waiting_for(self) -> str:
         """What the current wait still lacks, for the driver's ``deadline on`` log line (" — …"; "" if
         the role does not say)."""

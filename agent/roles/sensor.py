@@ -124,6 +124,10 @@ class SensorRole(Role):
         next one late too (agent/runner.py WaitBudget.window_s, agent/__main__.py role_budget)."""
         return self._tick_arrived.get(k)
 
+    def step_period(self, k: int) -> float | None:
+        tick = self._ticks.get(k)
+        return tick.period if tick is not None and tick.period > 0 else None
+
     def _on_truth(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Truth)
         if msg.x.shape != (self.sensor.C.shape[1],):

@@ -86,6 +86,10 @@ class TargetRole(Role):
             self.model.step()
             self._moved()
 
+    def step_period(self, k: int) -> float | None:
+        t = self._tick
+        return t.period if t is not None and t.k == k and t.period > 0 else None
+
     def _expected(self) -> list[int]:
         t = self._tick
         if self.source.startswith("node:"):

@@ -61,3 +61,22 @@ def test_realtime_budgets_fit_the_sensors_rounds_and_the_targets_wait_into_one_p
     target = role_budget(sc, "lockstep", "target", depth=TargetRole.wait_depth).slot_s
     world = role_budget(sc, "lockstep", "world", depth=WorldRole.wait_depth).slot_s
     assert (R + 1) * lock.slot_s < target < world
+
+
+def test_a_stretched_tick_gives_every_round_and_the_targets_wait_its_share_of_the_longer_period():
+    sc = _demo(**{"run.speed": 0.4})
+    R = sc.estimator.rounds
+    s, t = role_budget(sc, "realtime", "sensor"), role_budget(sc, "realtime", "target")
+    for factor in (2.5, 0.5):        # the world stretched under overload; a live speed-up
+        p = s.period_s * factor
+        s2, t2 = s.scaled(p), t.scaled(p)
+        for r in range(R):
+            assert s2.due((3, r), 0.0, 0.0) == pytest.approx(factor * s.due((3, r), 0.0, 0.0))
+        assert s2.due((3, R - 1), 0.0, 0.0, anchor=0.0) < t2.due((3, 0), 0.0, 0.0) < p
+        assert s2.due((0, 0), 0.0, 0.0) == s.due((0, 0), 0.0, 0.0)          # the warm-up as it was
+    assert s.scaled(None) is s and s.scaled(0.0) is s and s.scaled(-1.0) is s   # no period announced: nominal
+    # a hostile tick's period is bounded: a sensor neither waits for ever nor not at all
+    assert s.scaled(1e9).slot_s == pytest.approx(WaitBudget.MAX_SCALE * s.slot_s)
+    assert s.scaled(1e-9).slot_s == pytest.approx(s.slot_s / WaitBudget.MAX_SCALE)
+    lock = role_budget(sc, "lockstep", "sensor")
+    assert lock.scaled(1.0) is lock       # lockstep waits do not follow a period
