@@ -94,7 +94,8 @@ class StatusBoard:
 
     def pace_warning(self, window_s: float = 10.0, share: float = 0.05) -> str | None:
         """Once every ``window_s`` of a realtime run: when at least ``share`` of the flock's exchange rounds in
-        the window ended by deadline (a payload that did not come in time), what to do about it."""
+        the window ended by deadline (a payload that did not come in time), or the flock kept less than
+        1 − ``share`` of the target rate (the world's clock yielded to it, topology/pace.py), what to do about it."""
         if not self.target_rate or not self.rounds or self.k < 0 or self.done:
             return None
         now, d = self.clock(), self.deadlines()
@@ -107,11 +108,15 @@ class StatusBoard:
         self._pace = (now, self.k, d)
         rounds = (self.k - k0) * max(self.alive, 1) * self.rounds
         missed = (d - d0) / rounds if rounds > 0 else 0.0
-        if missed < share:
-            return None
-        return (f"{100 * min(missed, 1.0):.0f} % of rounds missed in the last {now - t0:.0f} s "
-                f"({d - d0} deadlines in {self.k - k0} ticks): the machine cannot keep this rate — lower "
-                f"run.speed or sensors.n")
+        kept = (self.k - k0) / (now - t0)
+        advice = "the machine cannot keep this rate — lower run.speed or sensors.n"
+        if missed >= share:
+            return (f"{100 * min(missed, 1.0):.0f} % of rounds missed in the last {now - t0:.0f} s "
+                    f"({d - d0} deadlines in {self.k - k0} ticks): {advice}")
+        if kept < (1 - share) * self.target_rate:
+            return (f"{kept:.1f} of {self.target_rate:.1f} ticks/s in the last {now - t0:.0f} s (the clock yields "
+                    f"to a flock that cannot keep it): {advice}")
+        return None
 
     def line(self) -> str:
         if self.k < 0 and not self.done and self.processes:

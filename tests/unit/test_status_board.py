@@ -123,6 +123,16 @@ def test_a_realtime_run_that_misses_rounds_is_told_what_to_do_once_a_window():
     said = [w for w in warnings if w]
     assert len(said) == 1, said
     assert said[0].startswith("12 % of rounds missed in the last 10 s") and "lower run.speed or sensors.n" in said[0]
+    # no round missed, but the clock yielded: 4 ticks/s kept of 10
+    slow, bus3, clock3 = board(target_rate=10.0, rounds=5, deadlines=lambda: 0)
+    said = []
+    for k in range(1, 60):
+        clock3.now += 0.25
+        send(bus3, "world/tick", tick(k, LINKS))
+        said.append(slow.pace_warning())
+    said = [w for w in said if w]
+    assert len(said) == 1 and said[0].startswith("4.0 of 10.0 ticks/s in the last 10 s"), said
+    assert "lower run.speed or sensors.n" in said[0]
     lock, bus2, clock2 = board(rounds=5, deadlines=lambda: 10 ** 6)
     for k in range(1, 300):
         clock2.now += 0.1
