@@ -160,6 +160,7 @@ def analyse(name: str, sc, summary: dict, info: dict, samples: list[dict], work:
     return {"phase": name, "sensors": sc.sensors.n, "T": sc.run.T, "speed": sc.run.speed, "ticks": sc.run.ticks,
             "wall_s": info.get("wall_s"), "ticks_per_s": info.get("ticks_per_s"), "rc": info.get("rc"),
             "missed_deadlines": info.get("missed_deadlines"),
+            "unrecorded_messages": info.get("unrecorded_messages"),
             "missed_deadlines_per_1000_ticks": round(1000.0 * (info.get("missed_deadlines") or 0) / ticks, 2),
             "late_payloads": late, "late_payloads_per_1000_ticks": round(1000.0 * late / ticks, 2),
             "restarts": info.get("restarts"), "recording_bytes": samples[-1]["recording_bytes"] if samples else None,

@@ -245,6 +245,7 @@ def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, 
         summary = metrics_from_recording(out / "recording.mcap", out, rec=rec)
     info = {"transport": "zenoh", "run": plan.run, "rc": rc, "wall_s": wall, "ticks_per_s": sc.run.ticks / wall,
             "router": launcher.endpoint, "recorded_messages": len(rec.messages), "recording_complete": rec.complete,
+            **({} if plan.multi_host else {"unrecorded_messages": unrecorded(out / "stats", rec)}),
             "missed_deadlines": launcher.deadlines,
             **({"host": launcher.host.name, "hosts": [h.name for h in plan.hosts]} if plan.multi_host else {}),
             **({"secure": True, "keys": str(keys.dir)} if keys is not None else {}),
@@ -253,6 +254,26 @@ def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, 
     (out / "run.json").write_text(json.dumps(info, indent=2))
     launcher.write_events(out / "events.json")
     return summary, info
+
+
+def unrecorded(stats_dir: Path, rec) -> dict[str, int]:
+    """Messages the run's processes sent on a key the recorder takes (all but the addressed copies) that are
+    not in the recording, by key: each process's ``sent_by_key`` (stats/<process>.json) against the recorded
+    count. Empty when the recording lost nothing. (A process killed with SIGKILL writes no stats: what it sent
+    is not counted, so a loss can be missed there, never made up.)"""
+    from collections import Counter
+
+    from agent.wire import addressed
+
+    recorded = Counter(key for key, _, _ in rec.messages)
+    sent: Counter = Counter()
+    for f in stats_dir.glob("*.json"):
+        try:
+            by_key = json.loads(f.read_text()).get("sent_by_key", {})
+        except (OSError, ValueError):
+            continue
+        sent.update({k: int(v) for k, v in by_key.items() if not addressed(k)})
+    return {k: v - recorded[k] for k, v in sorted(sent.items()) if recorded[k] < v}
 
 
 def replay_dashboard(path: str | Path, port: int = 8080) -> int:

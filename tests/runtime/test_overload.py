@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent import wire
 from agent.bus import ZenohBus
 from agent.scenario import parse_scenario, scenario_data
 from flocktrack.engine.run import run_zenoh_to_dir
@@ -80,13 +79,8 @@ def test_a_starved_realtime_run_slows_its_clock_counts_its_misses_and_recovers(t
     assert counted <= info["missed_deadlines"]
     # the recording lost nothing: every message a process sent on a recorded key is in it
     rec = read_recording(tmp_path / "recording.mcap")
-    assert rec.complete
-    recorded = Counter(key for key, _, _ in rec.messages)
-    sent: Counter = Counter()
-    for s in stats.values():
-        sent.update({k: v for k, v in s.get("sent_by_key", {}).items() if not wire.addressed(k)})
-    short = {k: (v, recorded[k]) for k, v in sent.items() if recorded[k] < v}
-    assert not short, short
+    assert rec.complete and info["unrecorded_messages"] == {}, info["unrecorded_messages"]
+    assert len(rec.messages) > 20 * ticks
     # recovery: the network's error after the burst (from 1 s of ticks after it) as before it, every sensor
     # estimating again
     err = {int(r["k"]): float(r["rmse"]) for r in csv.DictReader(open(tmp_path / "metrics.csv"))}
