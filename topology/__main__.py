@@ -40,8 +40,11 @@ def main(argv: list[str] | None = None) -> int:
     stop = StopFlag().install()
     bus = ZenohBus(args.run or sc.run.name, connect=args.connect, config_file=args.config)
     try:
+        # realtime: the clock closes the ticks; the deadline only guards against a clock that stopped, ten of
+        # its periods (as the world stretches or a speed change sets it: WorldRole.step_period)
+        period = sc.run.T / sc.run.speed
         deadline = (WaitBudget.lockstep(sc.run.deadline_s, rounds=sc.estimator.rounds, depth=world.wait_depth)
-                    if mode == "lockstep" else 10 * sc.run.T / sc.run.speed)
+                    if mode == "lockstep" else WaitBudget(10 * period, period_s=period))
         rc = profiled("world/0", lambda: drive(world, bus, "world/0", deadline, stop, expect=expect,
                                                startup_timeout_s=args.startup_timeout))
         logging.getLogger("world").info("done: %s", world.stats)

@@ -251,6 +251,10 @@ class WorldRole(Role):
     def start(self) -> None:
         self._publish_tick()
 
+    def step_period(self, k: int) -> float | None:
+        """Realtime: the period the clock keeps now (stretched under overload, or a speed change's)."""
+        return self.period if self.realtime else None
+
     def on_member(self, role: str, ident: int, alive: bool) -> None:
         """A process appeared or vanished. A dead sensor has no links until it returns; a returning one is
         expected to report from the next tick on. (And what a held tick waits for: fault_hold.py.)"""

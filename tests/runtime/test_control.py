@@ -117,6 +117,40 @@ def test_a_realtime_world_held_up_slips_its_clock_instead_of_shortening_the_next
     assert w.k == 4
 
 
+def test_a_realtime_world_whose_flock_runs_out_of_its_period_stretches_the_next_and_then_comes_back():
+    """topology/pace.py in the world: no state by the clock → the next tick lasts 1.5 periods and says so
+    (Tick.period, which the sensors fit their rounds into); every state at once → back to nominal."""
+    from agent.wire import State
+
+    sc = load_scenario(SCEN / "gu_hu_normal.toml")
+    w = build_world(sc, realtime=True)
+    bus = LocalBus()
+    ticks = []
+    bus.subscribe("world/tick", lambda key, m: ticks.append(m))
+    w.attach(bus)
+    w.start()
+    w.on_deadline()                        # the warm-up tick 0 (nobody answers: closed by the guard)
+    w.on_timer(0.0)                        # the clock starts: tick 1 closes at 1.0 period
+    nominal = w.period
+    w.on_timer(1.0 * nominal)              # tick 1 closes without a single state
+    bus.drain()
+    assert w.k == 2 and ticks[-1].k == 2 and ticks[-1].period == pytest.approx(1.5 * nominal)
+    assert w.stats["pace_stretched_ticks"] == 1 and w.stats["missing_states"] == 2 * w.n
+    w.on_timer(2.0 * nominal)              # tick 2 now lasts 1.5 periods: not closed yet ...
+    assert w.k == 2
+    for i in range(w.n):                   # ... and every state comes at once
+        bus.publish(f"agent/{i}/state", State(src=i, k=2, pos=np.zeros(2), vel=np.zeros(2)))
+    bus.publish("target/state", State(k=2, pos=np.zeros(2), vel=np.zeros(2)))
+    bus.drain()
+    w.on_timer(2.5 * nominal)
+    bus.drain()
+    assert w.k == 3 and ticks[-1].period == pytest.approx(nominal)
+    w.on_timer(3.45 * nominal)             # tick 3 is back at one period: it closes at 3.5
+    assert w.k == 3
+    w.on_timer(3.5 * nominal)
+    assert w.k == 4 and w.stats["pace_max_stretch"] == pytest.approx(1.5)
+
+
 def test_controls_end_to_end_over_zenoh(tmp_path):
     data = scenario_data(str(SCEN / "gu_hu_normal.toml"), [], **{"run.ticks": 160, "run.mode": "lockstep"})
     sc = parse_scenario(data, "gu_hu_normal.toml")
