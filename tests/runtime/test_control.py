@@ -119,8 +119,9 @@ def test_a_realtime_world_held_up_slips_its_clock_instead_of_shortening_the_next
 
 def test_a_realtime_world_whose_flock_runs_out_of_its_period_stretches_the_next_and_then_comes_back():
     """topology/pace.py in the world: no state by the clock → the next tick lasts 1.5 periods and says so
-    (Tick.period, which the sensors fit their rounds into); every state at once → back to nominal."""
+    (Tick.period, which the sensors fit their rounds into); every state at once → on its way back."""
     from agent.wire import State
+    from topology.pace import RELAX, STRETCH
 
     sc = load_scenario(SCEN / "gu_hu_normal.toml")
     w = build_world(sc, realtime=True)
@@ -134,7 +135,7 @@ def test_a_realtime_world_whose_flock_runs_out_of_its_period_stretches_the_next_
     nominal = w.period
     w.on_timer(1.0 * nominal)              # tick 1 closes without a single state
     bus.drain()
-    assert w.k == 2 and ticks[-1].k == 2 and ticks[-1].period == pytest.approx(1.5 * nominal)
+    assert w.k == 2 and ticks[-1].k == 2 and ticks[-1].period == pytest.approx(STRETCH * nominal)
     assert w.stats["pace_stretched_ticks"] == 1 and w.stats["missing_states"] == 2 * w.n
     w.on_timer(2.0 * nominal)              # tick 2 now lasts 1.5 periods: not closed yet ...
     assert w.k == 2
@@ -144,11 +145,13 @@ def test_a_realtime_world_whose_flock_runs_out_of_its_period_stretches_the_next_
     bus.drain()
     w.on_timer(2.5 * nominal)
     bus.drain()
-    assert w.k == 3 and ticks[-1].period == pytest.approx(nominal)
-    w.on_timer(3.45 * nominal)             # tick 3 is back at one period: it closes at 3.5
+    back = RELAX * STRETCH * nominal       # on its way back, by at most RELAX a tick
+    assert w.k == 3 and ticks[-1].period == pytest.approx(back)
+    assert w.stats["pace_max_stretch"] == pytest.approx(STRETCH)
+    w.on_timer(2.5 * nominal + 0.95 * back)
     assert w.k == 3
-    w.on_timer(3.5 * nominal)
-    assert w.k == 4 and w.stats["pace_max_stretch"] == pytest.approx(1.5)
+    w.on_timer(2.5 * nominal + back)
+    assert w.k == 4
 
 
 def test_controls_end_to_end_over_zenoh(tmp_path):
