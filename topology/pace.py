@@ -35,8 +35,8 @@ from collections.abc import Sequence
 
 STRETCH = 1.5       #: the next period × this when the flock ran out of the current one
 MAX_STRETCH = 8.0   #: a period never exceeds this × nominal
-BUSY = 0.75         #: the median state past this fraction of the period: stretch
-IDLE = 0.6          #: within this fraction: back towards nominal (median arrival / IDLE)
+BUSY = 0.9          #: the median state past this fraction of the period: stretch
+IDLE = 0.75         #: within this fraction: back towards nominal (median arrival / IDLE)
 RELAX = 0.9         #: a period shrinks to no less than this × itself a tick
 MISSING = 0.1       #: more than this share of the states never came: stretch
 

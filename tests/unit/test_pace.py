@@ -14,9 +14,9 @@ from topology.pace import BUSY, IDLE, MAX_STRETCH, RELAX, STRETCH, PaceGovernor,
 def test_the_period_stretches_while_the_flock_runs_out_of_it_and_comes_back_when_it_does_not():
     g = PaceGovernor(0.1)
     assert g.close(20, [0.02] * 20) == pytest.approx(0.1)           # a flock well within its period
-    assert g.close(20, [0.07] * 20) == pytest.approx(0.1)           # between IDLE and BUSY: held
+    assert g.close(20, [0.085] * 20) == pytest.approx(0.1)          # between IDLE and BUSY: held
     assert g.stretched_ticks == 0
-    assert g.close(20, [0.08] * 20) == pytest.approx(0.1 * STRETCH)  # the median past BUSY: stretched
+    assert g.close(20, [0.095] * 20) == pytest.approx(0.1 * STRETCH)  # the median past BUSY: stretched
     assert g.close(20, [0.02] * 17) == pytest.approx(0.1 * STRETCH ** 2)   # 3 of 20 states never came
     for _ in range(20):
         g.close(20, [])                                                # nothing comes: bounded
@@ -30,10 +30,10 @@ def test_the_period_stretches_while_the_flock_runs_out_of_it_and_comes_back_when
     assert g.max_stretch == pytest.approx(MAX_STRETCH)
     # a flock that needs a little more than the period settles at about that much
     g2 = PaceGovernor(0.1)
-    g2.close(20, [0.08] * 20)
-    settled = [g2.close(20, [0.08] * 20) for _ in range(10)]
-    assert settled[0] == pytest.approx(RELAX * 0.1 * STRETCH) and settled[-1] == pytest.approx(0.08 / IDLE)
-    assert 0.08 / settled[-1] < BUSY and BUSY > IDLE
+    g2.close(20, [0.095] * 20)
+    settled = [g2.close(20, [0.095] * 20) for _ in range(10)]
+    assert settled[0] == pytest.approx(RELAX * 0.1 * STRETCH) and settled[-1] == pytest.approx(0.095 / IDLE)
+    assert 0.095 / settled[-1] < BUSY and BUSY > IDLE
 
 
 def test_a_few_sensors_waiting_out_a_round_or_one_dead_sensor_do_not_slow_the_flock():
