@@ -247,6 +247,7 @@ def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, 
             "router": launcher.endpoint, "recorded_messages": len(rec.messages), "recording_complete": rec.complete,
             **({} if plan.multi_host else {"unrecorded_messages": unrecorded(out / "stats", rec)}),
             "missed_deadlines": launcher.deadlines,
+            **({"pace": pace} if (pace := _pace(out / "stats")) else {}),
             **({"host": launcher.host.name, "hosts": [h.name for h in plan.hosts]} if plan.multi_host else {}),
             **({"secure": True, "keys": str(keys.dir)} if keys is not None else {}),
             "restarts": {n: c.restarts for n, c in launcher.children.items() if c.restarts},
@@ -254,6 +255,18 @@ def _zenoh_results(sc: Scenario, out: Path, launcher: Launcher, rc: int | None, 
     (out / "run.json").write_text(json.dumps(info, indent=2))
     launcher.write_events(out / "events.json")
     return summary, info
+
+
+def _pace(stats_dir: Path) -> dict:
+    """A realtime run's clock under load (topology/pace.py): the ticks the world stretched and the largest
+    stretch, from its stats; empty when it never stretched (or this host has no world)."""
+    try:
+        role = json.loads((stats_dir / "world-0.json").read_text()).get("role", {})
+    except (OSError, ValueError):
+        return {}
+    if not role.get("pace_stretched_ticks"):
+        return {}
+    return {"stretched_ticks": role["pace_stretched_ticks"], "max_stretch": role.get("pace_max_stretch")}
 
 
 def unrecorded(stats_dir: Path, rec) -> dict[str, int]:

@@ -67,6 +67,7 @@ def test_a_starved_realtime_run_slows_its_clock_counts_its_misses_and_recovers(t
     world = stats["world-0"]["role"]
     # the clock yielded while the machine was starved, and not for the whole run
     assert 0 < world.get("pace_stretched_ticks", 0) < ticks // 2, world
+    assert info["pace"] == {"stretched_ticks": world["pace_stretched_ticks"], "max_stretch": world["pace_max_stretch"]}
     # every round a sensor closed by its deadline is in its counters, its log and its tick rows, and in the
     # launcher's count (which has the target's waits too)
     counted = 0
