@@ -3,7 +3,8 @@ key and what was expected (and how to fix it).
 
 A scenario has these tables (every key optional unless marked *required*; see ``scenarios/*.toml``):
 
-``[run]``        name, ticks, T (s), seed, mode ("lockstep" | "realtime"), deadline_s, burn_in, speed
+``[run]``        name, ticks, T (s), seed, mode ("lockstep" | "realtime"), deadline_s, burn_in, speed,
+                 pace ("fixed" | "adaptive")
 ``[target]``     kind ("normal" | "intelligent"), model ("double_integrator" | "matrices" | "continuous"), dim,
                  A, B, Q (covariance of w in x⁺ = Ax + Bw), x0 (*required*), ke, estimate_source
 ``[sensors]``    n (*required*), C, R | (D, v_std), positions | (grid_rows, spacing, jitter, origin), motion
@@ -66,6 +67,9 @@ class RunCfg:
     deadline_s: float = 5.0
     burn_in: int = 0         #: ticks excluded from the RMSE summaries
     speed: float = 1.0       #: realtime factor: a tick lasts T / speed seconds of wall-clock time
+    #: realtime: "fixed" — the clock keeps T / speed whatever the flock does; "adaptive" — it yields while the
+    #: flock cannot keep it and comes back when it can (topology/pace.py)
+    pace: Literal["fixed", "adaptive"] = "fixed"
 
 
 @dataclass(frozen=True)

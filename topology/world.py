@@ -10,8 +10,8 @@ At tick k the world publishes ``tick`` {k, t, links, weights, b, δ_max, alive, 
 It then waits for every alive sensor's ``state`` k and the target's ``state`` k (or the deadline),
 and starts tick k+1 — in realtime, its clock closes tick k at t0 + (k+1)·T/speed whatever has arrived, except
 tick 0, the warm-up (routes and publishers being set up), which closes on its states. While the flock cannot
-keep that pace (its states come late or not at all) the realtime clock yields — the period stretches and comes
-back once the flock keeps up (pace.py) — and each tick announces its period. It is the only role that knows
+keep that pace (its states come late or not at all) a run with ``run.pace = "adaptive"`` has the clock yield —
+the period stretches and comes back once the flock keeps up (pace.py) — and each tick announces its period. It is the only role that knows
 all positions.
 
 Process faults (crash, pause, router_restart) are executed by the launcher. In lockstep, when a launcher
@@ -63,7 +63,8 @@ def build_world(sc: Scenario, **kw) -> "WorldRole":
     return WorldRole(sc.sensors.n, sc.run.ticks, sc.run.T, P0, x0[: min(sc.pos_dims, P0.shape[1])],
                      schedule=schedule_of(sc), radius=tp.range, sensing_range=sc.sensors.sensing_range,
                      beta=sc.sensors.beta, speed=sc.run.speed, seed=sc.run.seed,
-                     faults=FaultPlan(sc.faults, sc.sensors.n, sc.run.seed), **kw)
+                     faults=FaultPlan(sc.faults, sc.sensors.n, sc.run.seed),
+                     **{"adaptive_pace": sc.run.pace == "adaptive", **kw})
 
 
 log = logging.getLogger(__name__)
@@ -87,14 +88,16 @@ class WorldRole(Role):
     def __init__(self, n: int, ticks: int, T: float, positions0: np.ndarray, target_pos0: np.ndarray, *,
                  schedule: PeriodicSchedule | None = None, radius: float = np.inf,
                  sensing_range: float = np.inf, beta: float = 1.0, realtime: bool = False, speed: float = 1.0,
-                 seed: int = 0, faults: FaultPlan | None = None, ack_timeout_s: float = 30.0):
+                 seed: int = 0, faults: FaultPlan | None = None, ack_timeout_s: float = 30.0,
+                 adaptive_pace: bool = False):
         super().__init__(ticks)
         # process faults (lockstep, with a launcher): tick k waits for the launcher (fault_hold.py)
         self.hold = FaultHold(timeout_s=ack_timeout_s)
         self._held_graph: tuple[np.ndarray, list[float]] | None = None   # held tick's links before the dead mask
         self.realtime = bool(realtime)
         self.period = float(T) / float(speed)  # wall-clock seconds per tick in realtime
-        self.pace = PaceGovernor(self.period)  # … stretched while the flock cannot keep it (pace.py)
+        self.pace = PaceGovernor(self.period)  # … stretched while the flock cannot keep it (pace.py) …
+        self.adaptive_pace = bool(adaptive_pace)  # … in a run whose run.pace is "adaptive"
         self._t0: float | None = None
         self._opened_at = 0.0                   # when the open tick was published (monotonic)
         self._arrivals: list[float] = []        # … and its states came, seconds after that
@@ -470,7 +473,7 @@ class WorldRole(Role):
             # on the run's record too (recordings, the Foxglove log, flocktrack.load's events): at most one a tick
             self.publish("world/event", Control(k=self.k, verb="late", args={"missing": len(missing),
                                                                              "agents": sorted(missing)[:64]}))
-        if self.realtime and self._t0 is not None:
+        if self.realtime and self.adaptive_pace and self._t0 is not None:
             self._govern_pace()
         for i, s in self._states.items():
             self.positions[i] = s.pos[: self.positions.shape[1]]

@@ -124,7 +124,7 @@ def test_a_realtime_world_whose_flock_runs_out_of_its_period_stretches_the_next_
     from topology.pace import RELAX, STRETCH
 
     sc = load_scenario(SCEN / "gu_hu_normal.toml")
-    w = build_world(sc, realtime=True)
+    w = build_world(sc, realtime=True, adaptive_pace=True)
     bus = LocalBus()
     ticks = []
     bus.subscribe("world/tick", lambda key, m: ticks.append(m))

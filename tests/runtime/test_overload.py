@@ -1,6 +1,6 @@
 """A realtime run the machine cannot keep degrades and recovers, it does not collapse: the README's main job
-over Zenoh with CPU burners starving the machine for 2 s in the middle. The world stretches its clock while
-the flock cannot keep it (topology/pace.py) and is back at the nominal pace once the load is gone; every
+over Zenoh with CPU burners starving the machine for 2 s in the middle. With ``run.pace = "adaptive"`` the world
+stretches its clock while the flock cannot keep it (topology/pace.py) and is back at the nominal pace once the load is gone; every
 round a sensor missed is counted, the estimates after the burst are as good as before it, and the recording
 lost nothing. Counts and errors are checked, not timing."""
 
@@ -54,7 +54,8 @@ class StarveAt:
 @pytest.mark.slow
 def test_a_starved_realtime_run_slows_its_clock_counts_its_misses_and_recovers(tmp_path):
     ticks, k_burst = 300, 80
-    data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [], **{"run.ticks": ticks, "run.mode": "realtime"})
+    data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [],
+                         **{"run.ticks": ticks, "run.mode": "realtime", "run.pace": "adaptive"})
     sc = parse_scenario(data, "demo.toml")
     hook = StarveAt(k_burst, 2.0)
     try:
