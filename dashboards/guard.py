@@ -172,6 +172,8 @@ class TabGuard:
         # a tab may have connected while the server started (it listens from its constructor on): guard it
         # the same way, on Viser's loop, before any more of its messages are handled
         loop = ws._background_event_loop
+        if loop is not None:
+            loop.set_exception_handler(self._task_failed)
         for client in tuple(server.get_clients().values()):
             if loop is not None:
                 asyncio.run_coroutine_threadsafe(self._on_connect(client._websock_connection), loop).result(10)
@@ -369,6 +371,16 @@ class TabGuard:
             return True
         self.counters["log_lines_suppressed"] += 1
         return False
+
+    def _task_failed(self, loop, context: dict) -> None:
+        """Viser's loop: a task raised and nobody awaited it — a message of a tab that connected while the
+        server started, handled by Viser before the guard was in front of it. Counted (``task_errors``) and
+        logged in one line, never with a traceback."""
+        exc = context.get("exception")
+        self.counters["task_errors"] += 1
+        self._log_global("task_errors", "a message was handled before the guard and raised %s: dropped (task_errors: "
+                         "%d so far)", type(exc).__name__ if exc is not None else context.get("message", "?"),
+                         self.counters["task_errors"])
 
     def _log_global(self, kind: str, fmt: str, *args) -> None:
         now = self.clock()

@@ -70,6 +70,13 @@ class PaceGovernor:
     def stretch(self) -> float:
         return self.period / self.nominal
 
+    def change(self, before: float) -> str | None:
+        """A log line when the clock begins or ends yielding (the period left or reached nominal), else None."""
+        if self.period == before or (before != self.nominal and self.period != self.nominal):
+            return None
+        what = "cannot keep its pace" if self.period > before else "keeps its pace again"
+        return f"the flock {what}; the period is {self.period * 1e3:.0f} ms (nominal {self.nominal * 1e3:.0f} ms)"
+
     def close(self, expected: int, arrivals: Sequence[float]) -> float:
         """Tick closed: ``arrivals`` are the seconds from its publication to each state that came in time, of
         ``expected`` sensors. Returns the next tick's period."""

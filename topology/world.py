@@ -10,9 +10,9 @@ At tick k the world publishes ``tick`` {k, t, links, weights, b, δ_max, alive, 
 It then waits for every alive sensor's ``state`` k and the target's ``state`` k (or the deadline),
 and starts tick k+1 — in realtime, its clock closes tick k at t0 + (k+1)·T/speed whatever has arrived, except
 tick 0, the warm-up (routes and publishers being set up), which closes on its states. While the flock cannot
-keep that pace (its states come late or not at all) a run with ``run.pace = "adaptive"`` has the clock yield —
-the period stretches and comes back once the flock keeps up (pace.py) — and each tick announces its period. It is the only role that knows
-all positions.
+keep that pace (its states do not come) a run with ``run.pace = "adaptive"`` has the clock yield — the period
+stretches and comes back once the flock keeps up (pace.py). Each realtime tick announces its period. It is the
+only role that knows all positions.
 
 Process faults (crash, pause, router_restart) are executed by the launcher. In lockstep, when a launcher
 is a member of the run (its liveliness token ``launcher/0``), the world publishes such a fault's
@@ -96,11 +96,9 @@ class WorldRole(Role):
         self._held_graph: tuple[np.ndarray, list[float]] | None = None   # held tick's links before the dead mask
         self.realtime = bool(realtime)
         self.period = float(T) / float(speed)  # wall-clock seconds per tick in realtime
-        self.pace = PaceGovernor(self.period)  # … stretched while the flock cannot keep it (pace.py) …
-        self.adaptive_pace = bool(adaptive_pace)  # … in a run whose run.pace is "adaptive"
+        self.pace, self.adaptive_pace = PaceGovernor(self.period), bool(adaptive_pace)   # run.pace (pace.py)
         self._t0: float | None = None
-        self._opened_at = 0.0                   # when the open tick was published (monotonic)
-        self._arrivals: list[float] = []        # … and its states came, seconds after that
+        self._opened_at, self._arrivals = 0.0, []   # when the open tick was published, its states came after it
         self._expected: set[int] = set()
         self.stats = {"late_states": 0, "missing_states": 0, "controls": 0}
         self._late_logged_at, self._late_unlogged = -float("inf"), 0   # (the late states' log line)
@@ -197,14 +195,12 @@ class WorldRole(Role):
         return True
 
     def _set_speed(self, factor: float) -> None:
-        """Realtime pace T / factor; the current tick keeps its phase (t0 is re-anchored so that the elapsed
-        ticks stay where they are)."""
+        """Realtime pace T / factor (kept stretched as much as it was, pace.py)."""
         self.pace.set_nominal(self.T / factor)
         self._set_period(self.pace.period, time.monotonic())
 
     def _set_period(self, period: float, at: float) -> None:
-        """The realtime period from now on; the tick under way keeps its phase (t0 re-anchored at ``at`` so
-        that the elapsed ticks stay where they are)."""
+        """The realtime period from ``at`` on; t0 re-anchored so that the ticks elapsed keep their phase."""
         if self._t0 is not None:
             elapsed_ticks = (at - self._t0) / self.period
             self._t0 = at - elapsed_ticks * period
@@ -254,8 +250,7 @@ class WorldRole(Role):
     def start(self) -> None:
         self._publish_tick()
 
-    def step_period(self, k: int) -> float | None:
-        """Realtime: the period the clock keeps now (stretched under overload, or a speed change's)."""
+    def step_period(self, k: int) -> float | None:   # (realtime: the period kept now, stretched or a speed's)
         return self.period if self.realtime else None
 
     def on_member(self, role: str, ident: int, alive: bool) -> None:
@@ -367,8 +362,7 @@ class WorldRole(Role):
 
     def _emit_tick(self, g: tuple[np.ndarray, list[float]]) -> None:
         self.last_tick = self.make_tick(self.k, g)
-        if self.realtime:
-            self.last_tick.period = self.period
+        self.last_tick.period = self.period if self.realtime else 0.0
         self._expected = {i for i in range(self.n) if self.alive[i]}
         self._open = True
         self._opened_at, self._arrivals = time.monotonic(), []
@@ -420,15 +414,10 @@ class WorldRole(Role):
     def _govern_pace(self) -> None:
         """Realtime, a tick closing: the next one's period from when this one's states came (pace.py)."""
         before = self.pace.period
-        period = self.pace.close(len(self._expected), self._arrivals)
-        if period != before:
-            self._set_period(period, self._t0 + (self.k + 1) * self.period)   # from this tick's close on
-            if before == self.pace.nominal or period == self.pace.nominal:
-                log.info("world: tick %d: the flock %s; the period is %.0f ms (nominal %.0f ms)", self.k,
-                         "cannot keep its pace" if period > before else "keeps its pace again", period * 1e3,
-                         self.pace.nominal * 1e3)
-        self.stats["pace_stretched_ticks"] = self.pace.stretched_ticks
-        self.stats["pace_max_stretch"] = self.pace.max_stretch
+        self._set_period(self.pace.close(len(self._expected), self._arrivals), self._t0 + (self.k + 1) * before)
+        if (line := self.pace.change(before)) is not None:
+            log.info("world: tick %d: %s", self.k, line)
+        self.stats.update(pace_stretched_ticks=self.pace.stretched_ticks, pace_max_stretch=self.pace.max_stretch)
 
     def _log_late(self, msg: State, every_s: float = 1.0) -> None:
         """A state that came after its tick closed: logged at most once every ``every_s`` seconds, with the
