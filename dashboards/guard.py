@@ -245,17 +245,20 @@ class TabGuard:
             self.tabs[client_id].operator = True
 
     def safe(self, fn, name: str | None = None):
-        """``fn`` as a Viser callback that never raises: an exception is counted and logged once per callback
-        (with its traceback the first time), then only counted."""
+        """``fn`` as a Viser callback that never raises: an exception is counted and logged in one line once per
+        callback (its traceback at debug level), then only counted — seen under load: Viser's message buffer,
+        pushed to from the dashboard's thread, raising "deque mutated during iteration" in asyncio."""
         label = name or getattr(fn, "__qualname__", "callback")
 
         def run(*args, **kwargs):
             try:
                 return fn(*args, **kwargs)
-            except Exception:
+            except Exception as exc:
                 self.counters["callback_errors"] += 1
                 if self.counters[f"callback_errors:{label}"] == 0:
-                    log.exception("dashboard callback %s failed (logged once; counted after)", label)
+                    log.error("dashboard callback %s failed: %s: %s (logged once; counted after)", label,
+                              type(exc).__name__, exc)
+                    log.debug("dashboard callback %s failed", label, exc_info=True)
                 self.counters[f"callback_errors:{label}"] += 1
                 return None
 
