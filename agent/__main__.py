@@ -35,9 +35,9 @@ def role_budget(sc, mode: str, role: str, *, depth: int = 0) -> WaitBudget:
     sensor (the window: a sensor that begins late gets what is left of the tick, not a whole new schedule,
     so a stall costs the ticks it hits — without it, 40 sensors at 10 Hz lost ~8 ticks of ~90 missed
     deadlines after one 37 ms freeze of the machine); an intelligent target waits for the estimates until
-    half the tail is left. Every wait of the warm-up tick 0 gets two periods. A tick that announces another period
-(``Tick.period``: the world stretched under overload, topology/pace.py, or the run's speed changed) gets the
-same schedule in proportion (:meth:`agent.runner.WaitBudget.scaled`)."""
+    half the tail is left. Every wait of the warm-up tick 0 gets two periods. A tick that announces another
+    period (``Tick.period``: the world stretched under overload, topology/pace.py, or the run's speed changed)
+    gets the same schedule in proportion (:meth:`agent.runner.WaitBudget.scaled`)."""
     if mode == "lockstep":
         return WaitBudget.lockstep(sc.run.deadline_s, rounds=sc.estimator.rounds, depth=depth)
     period = sc.run.T / sc.run.speed

@@ -82,10 +82,9 @@ class PaceGovernor:
         ``expected`` sensors. Returns the next tick's period."""
         if expected <= 0:
             return self.period
-        median = arrival_quantile(expected, arrivals, 0.5)
         if len(arrivals) < (1 - MISSING) * expected:
             self.period = min(self.nominal * MAX_STRETCH, self.period * STRETCH)
-        elif median < IDLE * self.period:
+        elif (median := arrival_quantile(expected, arrivals, 0.5)) < IDLE * self.period:
             self.period = max(self.nominal, RELAX * self.period, min(self.period, median / BUSY))
         if self.period > self.nominal * (1 + 1e-9):
             self.stretched_ticks += 1

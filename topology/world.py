@@ -344,7 +344,8 @@ class WorldRole(Role):
             for i in self.plan.blind():
                 b[i] = 0.0
         return Tick(k=k, t=k * self.T, n=self.n, links=neighbour_lists(M), weights=edge_weights(M), b=b,
-                    delta_max=max_degree(M), alive=list(self.alive), positions=self.positions.copy())
+                    delta_max=max_degree(M), alive=list(self.alive), positions=self.positions.copy(),
+                    period=self.period if self.realtime else 0.0)
 
     def _publish_tick(self) -> None:
         adj, b = self._linked_graph(self.k)
@@ -362,7 +363,6 @@ class WorldRole(Role):
 
     def _emit_tick(self, g: tuple[np.ndarray, list[float]]) -> None:
         self.last_tick = self.make_tick(self.k, g)
-        self.last_tick.period = self.period if self.realtime else 0.0
         self._expected = {i for i in range(self.n) if self.alive[i]}
         self._open = True
         self._opened_at, self._arrivals = time.monotonic(), []
@@ -414,7 +414,8 @@ class WorldRole(Role):
     def _govern_pace(self) -> None:
         """Realtime, a tick closing: the next one's period from when this one's states came (pace.py)."""
         before = self.pace.period
-        self._set_period(self.pace.close(len(self._expected), self._arrivals), self._t0 + (self.k + 1) * before)
+        if (period := self.pace.close(len(self._expected), self._arrivals)) != before:
+            self._set_period(period, self._t0 + (self.k + 1) * before)     # from this tick's close on
         if (line := self.pace.change(before)) is not None:
             log.info("world: tick %d: %s", self.k, line)
         self.stats.update(pace_stretched_ticks=self.pace.stretched_ticks, pace_max_stretch=self.pace.max_stretch)

@@ -82,8 +82,8 @@ class Role:
 
     def step_period(self, k: int) -> float | None:
         """The wall-clock seconds step ``k`` lasts, as the realtime world announced it (``Tick.period``: the
-        pace it keeps, stretched under overload — topology/pace.py), or None: the nominal T / speed. The driver
-        fits the step's waits into it (agent/runner.py WaitBudget.scaled)."""
+        pace it keeps, stretched under overload — topology/pace.py), or None (or 0, a lockstep tick's): the nominal
+        T / speed. The driver fits the step's waits into it (agent/runner.py WaitBudget.scaled)."""
         return None
 
     def waiting_for(self) -> str:

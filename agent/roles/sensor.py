@@ -126,7 +126,7 @@ class SensorRole(Role):
 
     def step_period(self, k: int) -> float | None:
         tick = self._ticks.get(k)
-        return tick.period if tick is not None and tick.period > 0 else None
+        return None if tick is None else tick.period
 
     def _on_truth(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Truth)

@@ -88,7 +88,7 @@ class TargetRole(Role):
 
     def step_period(self, k: int) -> float | None:
         t = self._tick
-        return t.period if t is not None and t.k == k and t.period > 0 else None
+        return t.period if t is not None and t.k == k else None
 
     def _expected(self) -> list[int]:
         t = self._tick
