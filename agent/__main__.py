@@ -1,4 +1,4 @@
-"""python -m agent ROLE --id I --scenario FILE --connect ENDPOINT [--run NAME] [--design FILE]
+"""python -m agent ROLE --id I --scenario FILE --connect ENDPOINT [--run NAME] [--design FILE] [--hosts MAP]
 
 Runs one agent-side role (``sensor`` or ``target``) in this process over Zenoh.
 """
@@ -12,6 +12,7 @@ import sys
 
 from .assemble import build_extra, build_sensor, build_target, extra_processes
 from .bus import ZenohBus
+from .roles.routes import parse_hosts
 from .runner import StopFlag, WaitBudget, drive, lean_zenoh_runtime, profiled
 from .scenario import ScenarioError, load_scenario
 
@@ -63,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mode", choices=["lockstep", "realtime"], default=None)
     ap.add_argument("--rejoin", action="store_true", help="join a running flock (after a restart)")
     ap.add_argument("--config", default=None, help="Zenoh json5 config file for this process")
+    ap.add_argument("--hosts", default=None, metavar="HOST:FIRST-LAST,...",
+                    help="a run placed on several hosts: every sensor's host (a sensor sends a payload to another "
+                         "host once, not once per hearer there)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -78,6 +82,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: --id {args.id} is not a sensor of {args.scenario} (0..{sc.sensors.n - 1})", file=sys.stderr)
             return 2
         role, name = build_sensor(sc, args.id, design, rejoin=args.rejoin), f"agent/{args.id}"
+        if args.hosts and hasattr(role, "place"):
+            try:
+                role.place(parse_hosts(args.hosts, sc.sensors.n))
+            except ValueError as exc:
+                print(f"error: --hosts {args.hosts}: {exc}", file=sys.stderr)
+                return 2
     elif args.role == "fusion":
         if "fusion" not in extra_processes(sc):
             print(f"error: {args.scenario} has no fusion solver ([uavs]/[fusion] tables)", file=sys.stderr)

@@ -178,6 +178,12 @@ def role_ports(sc: Scenario, kind: str) -> Ports:
     raise ValueError(f"{sc.source} runs no {kind!r} role")
 
 
+def role_host_ports(sc: Scenario) -> Ports | None:
+    """What scenario ``sc``'s sensors add to their ports in a run placed on several hosts (``HOST_PORTS``:
+    ``{i}`` and ``{host}`` not yet filled in), None when they exchange nothing."""
+    return getattr(KINDS[sc.kind].sensor_class(sc), "HOST_PORTS", None)
+
+
 def build_extra(sc: Scenario, name: str) -> Role:
     """One of :func:`extra_processes`' roles."""
     if name == "fusion" and name in extra_processes(sc):

@@ -1,7 +1,8 @@
 """What a node writes and reads: the key expressions of a role, declared next to its code.
 
 Every role class carries a ``PORTS`` (``SensorRole.PORTS``, ``WorldRole.PORTS``, the recorder's, the
-dashboard's, the launcher's). Keys are relative to ``ft/<run>/`` and may hold ``{i}``, the node's id::
+dashboard's, the launcher's). Keys are relative to ``ft/<run>/`` and may hold ``{i}``, the node's id (and
+``{host}``, its host's name)::
 
     class SensorRole(Role):
         PORTS = Ports(writes=("agent/{i}/state", ...), reads=("world/tick", "agent/*/to/{i}/xchg", ...))
@@ -37,6 +38,11 @@ class Ports:
     def of(self, i: int) -> Ports:
         """The ports of node ``i`` of this role (``{i}`` filled in)."""
         return Ports(_fill(self.writes, i), _fill(self.reads, i))
+
+    def on_host(self, host: str) -> Ports:
+        """These ports on ``host`` (``{host}`` filled in: what a sensor of a placed run reads of its host's)."""
+        return Ports(tuple(k.replace("{host}", host) for k in self.writes),
+                     tuple(k.replace("{host}", host) for k in self.reads))
 
     def __add__(self, other: Ports) -> Ports:
         """Both roles' keys, each once, in order (a role that extends another)."""

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, ClassVar
 
@@ -368,6 +369,23 @@ class UnusableXchg(Xchg):
                        r=_int(d.get("r"), "r", 0, 1000), reason=reason)
         except WireError:
             return None
+
+
+@dataclass
+class ViaXchg(Xchg):
+    """Sensor i's exchange payload sent once to another host's router, for the sensors there that hear it
+    (``to``): on ``agent/<i>/via/<host>/xchg``, which every sensor of that host reads and only those in ``to``
+    keep. A run placed on several hosts sends a payload across a host link once per host, not once per
+    hearer (:mod:`agent.roles.routes`)."""
+
+    to: list[int] = field(default_factory=list)
+
+    @classmethod
+    def _fields_from_wire(cls, d: dict) -> dict:
+        to = int_list(_list(d.get("to"), "to"))
+        if to is None:
+            raise WireError("bad_field", f"to must be a list of at most {MAX_LIST_LEN} sensor ids")
+        return super()._fields_from_wire(d) | {"to": to}
 
 
 @dataclass
@@ -711,6 +729,9 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 }
 
 #: (first key segment, message type) -> whether the segment after it is an agent id
+#: a host's name in a key (what a placement allows: flocktrack/plan/placement.py)
+_HOST = re.compile(r"[a-z0-9][a-z0-9_]*")
+
 _KEY_TYPES = {
     ("world", "tick"): Tick,
     ("world", "end"): End,
@@ -738,6 +759,17 @@ def inbox(i: int) -> str:
     return f"agent/*/to/{i}/xchg"
 
 
+def via_key(src: int, host: str) -> str:
+    """The key sensor ``src`` sends one copy of an exchange payload on for the sensors of ``host`` that hear
+    it (a :class:`ViaXchg`)."""
+    return f"agent/{src}/via/{host}/xchg"
+
+
+def host_inbox(host: str) -> str:
+    """The exchange payloads sent to the sensors of ``host`` (a subscription pattern; see :func:`via_key`)."""
+    return f"agent/*/via/{host}/xchg"
+
+
 def estimate_key(src: int, dst: int) -> str:
     """The key sensor ``src`` hands its last estimate to a (re)joining sensor ``dst`` on."""
     return f"agent/{src}/to/{dst}/estimate"
@@ -749,7 +781,8 @@ def estimate_inbox(i: int) -> str:
 
 
 def addressed(key: str) -> bool:
-    """Is ``key`` addressed to one sensor (``agent/<i>/to/<j>/xchg`` or ``…/estimate``), not for observers?"""
+    """Is ``key`` addressed to one sensor (``agent/<i>/to/<j>/xchg`` or ``…/estimate``) or to the sensors of
+    one host (``agent/<i>/via/<host>/xchg``), not for observers?"""
     return key.count("/") == 4 and key.startswith("agent/")
 
 
@@ -764,6 +797,10 @@ def expected_type(key: str) -> tuple[type[Message], int | None]:
         if owner < 0 or dst < 0 or dst == owner:
             raise WireError("bad_key", key)
         return _KEY_TYPES[("agent", parts[4])], owner
+    if parts[0] == "agent" and len(parts) == 5 and parts[2] == "via" and parts[4] == "xchg":
+        if not parts[1].isdigit() or _HOST.fullmatch(parts[3]) is None:
+            raise WireError("bad_key", key)
+        return ViaXchg, int(parts[1])
     if parts[0] == "agent" and len(parts) == 3:
         try:
             owner = int(parts[1])

@@ -12,14 +12,16 @@ the run (``--from``, ``--to``), the switch's port counters give what each host s
 The prediction reads the run's merged recording: every message of those ticks, its msgpack size
 (``wire.encode``), its publisher's host, and the hosts with a subscriber for its key (the run plan's reads of
 the nodes on each host), one copy per remote router (Zenoh routes a put once to each router with a matching
-subscription). Exchange payloads are addressed: sensor i sends one copy per sensor j that hears
-it by tick k's link table, on ``agent/i/to/j/xchg`` — a copy crosses only when j is on another host — and
-one observer copy ``agent/i/xchg`` to the recorder's host. ``broadcast`` is what the same run would send
-if every sensor still subscribed to ``agent/*/xchg`` (before addressing): one copy to every other host.
+subscription). Exchange payloads go three ways, each predicted: ``per_host`` (what the runtime does: sensor
+i sends each sensor j of its own host that hears it by tick k's link table a copy on ``agent/i/to/j/xchg``,
+and every other host with hearers one copy on ``agent/i/via/<host>/xchg`` naming them), ``per_hearer`` (one
+copy per hearer wherever it is) and ``broadcast`` (every sensor subscribed to ``agent/*/xchg``: one copy to
+every other host); and one observer copy ``agent/i/xchg`` to the recorder's host.
 
-Writes per directed host link and per host: predicted messages and payload bytes per tick (addressed and
-broadcast), measured bytes and frames per tick, and the measured / predicted byte ratio (the wire's
-overhead over the msgpack payloads). docs/scaling.md extrapolates from these numbers.
+Writes per directed host link and per host: predicted messages and payload bytes per tick (each way),
+measured bytes and frames per tick, the measured / predicted byte ratio (the wire's overhead over the msgpack
+payloads), and ``crossing``: everything that crossed a host link against the payloads that had to.
+docs/scaling.md extrapolates from these numbers.
 """
 
 from __future__ import annotations
@@ -55,18 +57,22 @@ def subscriber_hosts(plan: RunPlan, topic: str) -> set[str]:
     return {n.host for n in plan.nodes if any(key_matches(r, topic) for r in n.reads)}
 
 
+SCHEMES = ("per_host", "per_hearer", "broadcast")
+
+
 def predict(recording: Path, plan: RunPlan, k0: int, k1: int) -> dict:
-    """Messages and msgpack bytes per directed host link over ticks [k0, k1): addressed and broadcast."""
+    """Messages and msgpack bytes per directed host link over ticks [k0, k1), for each way of sending the
+    exchange payloads (:data:`SCHEMES`): ``per_host`` (what runs), ``per_hearer``, ``broadcast``."""
     rec = read_recording(recording)
     ticks = {m.k: m for topic, m, _ in rec.messages if topic == "world/tick"}
-    links: dict[str, dict[str, dict[str, float]]] = {"addressed": defaultdict(lambda: defaultdict(float)),
-                                                     "broadcast": defaultdict(lambda: defaultdict(float))}
+    links: dict[str, dict[str, dict[str, float]]] = {s: defaultdict(lambda: defaultdict(float)) for s in SCHEMES}
     sizes: dict[str, list[int]] = defaultdict(list)
 
-    def add(kind: str, src: str, dst: str, size: int, n: int = 1) -> None:
+    def add(kinds: tuple[str, ...], src: str, dst: str, size: int) -> None:
         if src != dst:
-            links[kind][f"{src}->{dst}"]["messages"] += n
-            links[kind][f"{src}->{dst}"]["bytes"] += n * size
+            for kind in kinds:
+                links[kind][f"{src}->{dst}"]["messages"] += 1
+                links[kind][f"{src}->{dst}"]["bytes"] += size
 
     for topic, msg, _ in rec.messages:
         if not k0 <= msg.k < k1:
@@ -75,17 +81,21 @@ def predict(recording: Path, plan: RunPlan, k0: int, k1: int) -> dict:
         kind = topic.split("/")[-1]
         sizes[kind].append(size)
         src = host_of(plan, topic)
-        for dst in subscriber_hosts(plan, topic):
-            add("addressed", src, dst, size)
-            if kind != "xchg":
-                add("broadcast", src, dst, size)
+        for dst in subscriber_hosts(plan, topic):   # observers' copies, and every other message
+            add(SCHEMES if kind != "xchg" else ("per_host", "per_hearer"), src, dst, size)
         if kind == "xchg":
             tick = ticks[msg.k]
             hearers = [j for j in range(tick.n) if j != msg.src and msg.src in tick.links[j]]
+            where = {j: plan.node(f"agent/{j}").host for j in hearers}
             for j in hearers:                      # one addressed copy per sensor that hears the sender
-                add("addressed", src, plan.node(f"agent/{j}").host, size)
+                add(("per_hearer",), src, where[j], size)
+            remote = [j for j in hearers if where[j] != src]
+            if remote:                             # one copy per other host with hearers, naming them all
+                via = len(wire.encode(wire.ViaXchg(src=msg.src, k=msg.k, r=msg.r, payload=msg.payload, to=remote)))
+                for dst in dict.fromkeys(where[j] for j in remote):
+                    add(("per_host",), src, dst, via)
             for dst in HOSTS:                      # before addressing: to every host (sensors or recorder)
-                add("broadcast", src, dst, size)
+                add(("broadcast",), src, dst, size)
     n = k1 - k0
     out = {kind: {lk: {"messages_per_tick": v["messages"] / n, "bytes_per_tick": v["bytes"] / n}
                   for lk, v in sorted(d.items())} for kind, d in links.items()}
@@ -139,25 +149,33 @@ def main(argv: list[str] | None = None) -> int:
         plan = RunPlan.from_json((Path(d) / "a" / "plan.json").read_text())
         k0, k1, meas = measured(timeline)
         pred = predict(r["merged"] / "recording.mcap", plan, k0, k1)
-    addressed, broadcast = per_host(pred["addressed"]), per_host(pred["broadcast"])
-    hosts = {h: {"measured": meas[h], "predicted_addressed": addressed[h], "predicted_broadcast": broadcast[h],
+    by_host = {s: per_host(pred[s]) for s in SCHEMES}
+    hosts = {h: {"measured": meas[h], **{f"predicted_{s}": by_host[s][h] for s in SCHEMES},
                  "measured_over_predicted_bytes": {
-                     d: round(meas[h][f"{d}_bytes_per_tick"] / max(addressed[h][f"{d}_bytes_per_tick"], 1e-9), 2)
+                     d: round(meas[h][f"{d}_bytes_per_tick"] / max(by_host["per_host"][h][f"{d}_bytes_per_tick"], 1e-9), 2)
                      for d in ("sent", "received")}}
              for h in HOSTS}
+    crossing = {"measured_bytes_per_tick": round(sum(meas[h]["sent_bytes_per_tick"] for h in HOSTS), 1),
+                **{f"{s}_payload_bytes_per_tick": round(sum(v["bytes_per_tick"] for v in pred[s].values()), 1)
+                   for s in SCHEMES}}
+    crossing["measured_over_per_host_payloads"] = round(
+        crossing["measured_bytes_per_tick"] / max(crossing["per_host_payload_bytes_per_tick"], 1e-9), 3)
     res = {"date": time.strftime("%Y-%m-%d"), "scenario": "gu_hu_normal", "n_sensors": len(plan.of_kind("agent")),
            "placement": {h: [n.name for n in plan.on(h)] for h in HOSTS},
            "ticks_counted": [k0, k1], "rc": info.get("rc"), "wall_s": round(time.monotonic() - t0, 1),
-           "links_addressed": pred["addressed"], "links_broadcast": pred["broadcast"],
-           "message_bytes": pred["message_bytes"], "hosts": hosts}
+           **{f"links_{s}": pred[s] for s in SCHEMES}, "message_bytes": pred["message_bytes"], "hosts": hosts,
+           "crossing": crossing}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(res, indent=1))
     for h, v in hosts.items():
-        m, p, b = v["measured"], v["predicted_addressed"], v["predicted_broadcast"]
+        m, p, e, b = v["measured"], v["predicted_per_host"], v["predicted_per_hearer"], v["predicted_broadcast"]
         print(f"[mesh] host {h}: sent {m['sent_bytes_per_tick']:.0f} B/tick in {m['sent_frames_per_tick']:.1f} frames "
-              f"(payloads {p['sent_bytes_per_tick']:.0f} B in {p['sent_messages_per_tick']:.1f} messages; broadcast "
-              f"would be {b['sent_bytes_per_tick']:.0f} B); received {m['received_bytes_per_tick']:.0f} B/tick "
-              f"(payloads {p['received_bytes_per_tick']:.0f} B)", flush=True)
+              f"(payloads {p['sent_bytes_per_tick']:.0f} B in {p['sent_messages_per_tick']:.1f} messages; one copy per "
+              f"hearer would be {e['sent_bytes_per_tick']:.0f} B, broadcast {b['sent_bytes_per_tick']:.0f} B); "
+              f"received {m['received_bytes_per_tick']:.0f} B/tick (payloads {p['received_bytes_per_tick']:.0f} B)",
+              flush=True)
+    print(f"[mesh] across host links: {crossing['measured_bytes_per_tick']:.0f} B/tick measured, "
+          f"{crossing['measured_over_per_host_payloads']:.3f} × the payloads that must cross", flush=True)
     print(f"wrote {a.out}")
     return 0
 

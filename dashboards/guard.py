@@ -246,8 +246,7 @@ class TabGuard:
 
     def safe(self, fn, name: str | None = None):
         """``fn`` as a Viser callback that never raises: an exception is counted and logged in one line once per
-        callback (its traceback at debug level), then only counted — seen under load: Viser's message buffer,
-        pushed to from the dashboard's thread, raising "deque mutated during iteration" in asyncio."""
+        callback (its traceback at debug level), then only counted."""
         label = name or getattr(fn, "__qualname__", "callback")
 
         def run(*args, **kwargs):

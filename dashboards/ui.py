@@ -54,10 +54,11 @@ class DashboardUI:
         (dashboards/guard.py)."""
         import viser
 
-        from . import frames
+        from . import frames, loop_safe
         from .operator import Operators
 
         frames.install()   # one encoding per broadcast frame, not one per tab (dashboards/frames.py)
+        loop_safe.install()   # pushes from this process's threads wake Viser's loop from that loop only
 
         self.info, self.live, self.replay = info, live, replay
         self.operators = Operators(operator_token if live else None)

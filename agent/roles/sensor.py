@@ -31,10 +31,11 @@ from ..link_emulation import LinkEmulator, noise_factor
 from ..models import LinearSensor, integrate_double_integrator
 from ..ports import Ports
 from ..wire import (Control, Estimate, FaultEvent, Meas, Message, State, Tick, Truth, UnusableXchg, WireError,
-                    Xchg, command, estimate_inbox, estimate_key, inbox, xchg_key)
+                    Xchg, command, estimate_inbox, estimate_key)
 from .common import Role
 from .rejoin import Rejoin
 from .rounds import RoundInbox
+from .routes import ExchangeRoutes
 from .tick_timing import TickTiming
 
 log = logging.getLogger(__name__)
@@ -49,6 +50,9 @@ class SensorRole(Role):
                           "agent/{i}/to/*/xchg", "agent/{i}/to/*/estimate"),
                   reads=("world/tick", "target/truth", "agent/*/to/{i}/xchg", "agent/*/to/{i}/estimate",
                          "control/outlier_burst", "world/event"))
+    #: a run placed on several hosts adds: one copy of a payload per other host with hearers, and the
+    #: copies sent to its own host (``{host}``; agent/roles/routes.py)
+    HOST_PORTS = Ports(writes=("agent/{i}/via/*/xchg",), reads=("agent/*/via/{host}/xchg",))
 
     def __init__(self, i: int, ticks: int, T: float, estimator: Estimator, sensor: LinearSensor, *,
                  rng: np.random.Generator, q0: np.ndarray, p0: np.ndarray | None = None,
@@ -66,7 +70,7 @@ class SensorRole(Role):
         self._truth: dict[int, Truth] = {}
         self._prior: np.ndarray | None = None
         self._nbrs: list[int] = []
-        self._out: list[str] = []       # this tick's exchange keys: one per sensor that hears us, + observers'
+        self.routes = ExchangeRoutes(self.i)   # this tick's exchange keys (agent/roles/routes.py)
         self._dead: set[int] = set()
         self._sat_out_last = -2   # the last tick sat out (a log line when a stretch begins)
         self.inbox = RoundInbox(self.counters)               # exchange payloads by (tick, round)
@@ -78,11 +82,20 @@ class SensorRole(Role):
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
         bus.subscribe("target/truth", self._on_truth)
-        bus.subscribe(inbox(self.i), self._on_xchg)
+        for key in self.routes.inboxes():
+            bus.subscribe(key, self._on_xchg)
         if self.join.restarted:
             bus.subscribe(estimate_inbox(self.i), self._on_peer_estimate)
         bus.subscribe("control/outlier_burst", self._on_outlier_burst)
         bus.subscribe("world/event", self.on_world_event)
+
+    def place(self, hosts: list[str]) -> None:
+        """A run placed on several hosts: every sensor's host (before :meth:`subscribe`)."""
+        self.routes = ExchangeRoutes(self.i, hosts)
+
+    def ports(self) -> Ports:
+        host = self.routes.host
+        return super().ports() if host is None else super().ports() + self.HOST_PORTS.of(self.i).on_host(host)
 
     @property
     def finished(self) -> bool:
@@ -178,6 +191,9 @@ class SensorRole(Role):
     # ------------------------------------------------------------------ exchange payloads
     def _on_xchg(self, key: str, msg: Message) -> None:
         assert isinstance(msg, Xchg)
+        if not self.routes.for_me(msg):
+            self.counters["other_hearers_payloads"] += 1   # (its host's copy, for other sensors there)
+            return
         # held for whole ticks, a payload of this round will miss it: the round need not wait for it
         if msg.src != self.i and self.link.admit(key, msg) and msg.k == self.k and msg.r == self.r:
             self._check_round()
@@ -233,9 +249,7 @@ class SensorRole(Role):
         y = self._measure(tick, truth, b)
         links = tick.links[self.i]
         self._nbrs = self._live_neighbours(tick)
-        # range-based link dropping at the transport: only the sensors that hear us get our payloads
-        self._out = [xchg_key(self.i, j) for j, heard in enumerate(tick.links) if j != self.i and self.i in heard]
-        self._out.append(f"agent/{self.i}/xchg")
+        self.routes.route(tick.links)   # range-based link dropping at the transport: only our hearers
         if self.join.joining:
             self.join.start_from(self.est, self._nbrs, self.k)
             log.info("agent/%d: back in the flock at tick %d", self.i, self.k)
@@ -265,7 +279,7 @@ class SensorRole(Role):
         with self.timing.spent("compute"):
             payload = self.link.corrupt(self.r, self.est.payload(self.r))
         with self.timing.spent("publish"):
-            self.publish_to(self._out, Xchg(src=self.i, k=self.k, r=self.r, payload=payload))
+            self.routes.send(self, Xchg(src=self.i, k=self.k, r=self.r, payload=payload))
         self._check_round()
 
     def _check_round(self) -> None:

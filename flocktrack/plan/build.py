@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from agent.ports import Ports
+from agent.wire import addressed
 from agent.scenario import Scenario
 
 from .model import Host, Node, RestartPolicy, RunPlan
@@ -78,6 +79,8 @@ def build_plan(sc: Scenario, *, run: str | None = None, placement: Placement | N
     where = placement.assign([n.name for n in flock]) if placement is not None else {}
     placed = [replace(n, host=where.get(n.name, hosts[0].name)) for n in flock]
     single = placement is None
+    if not single:
+        placed = _routed_by_host(sc, placed)
     for h in hosts:
         placed += [replace(n, host=h.name) for n in host_nodes(h.name, single, record=record, supervisor=supervisor)]
     placed = _ordered(_with_observers(placed, multi=not single))
@@ -90,6 +93,27 @@ def build_plan(sc: Scenario, *, run: str | None = None, placement: Placement | N
 
 
 
+def _routed_by_host(sc: Scenario, nodes: list[Node]) -> list[Node]:
+    """A run on several hosts: each sensor is told every sensor's host (``--hosts``) and sends a payload to
+    another host once, for all its hearers there (agent/roles/routes.py) — its role's ``HOST_PORTS``, with
+    ``{host}`` its own."""
+    from agent.assemble import role_host_ports
+    from agent.roles.routes import format_hosts
+
+    extra = role_host_ports(sc)
+    sensors = {int(n.id): n.host for n in nodes if n.kind == "agent"}
+    if extra is None or not sensors:
+        return nodes
+    spec = format_hosts([sensors[i] for i in range(len(sensors))])
+    out = []
+    for n in nodes:
+        if n.kind == "agent":
+            p = extra.of(int(n.id)).on_host(n.host)
+            n = replace(n, writes=n.writes + p.writes, reads=n.reads + p.reads, args=n.args + ("--hosts", spec))
+        out.append(n)
+    return out
+
+
 def _with_observers(nodes: list[Node], multi: bool) -> list[Node]:
     """Observers read what the others write: a recorder what its own host's nodes write (the recorder shards
     of a placement, merged by ``flocktrack merge``), the dashboard everything."""
@@ -100,7 +124,7 @@ def _with_observers(nodes: list[Node], multi: bool) -> list[Node]:
                 n.kind == "dashboard" or not multi or m.host == n.host)]
             reads: dict[str, None] = {}
             for m in mine + ([n] if n.kind == "dashboard" else []):
-                reads.update((w, None) for w in m.writes if "/to/" not in w)
+                reads.update((w, None) for w in m.writes if not addressed(w))
             if any(m.kind == "world" for m in mine):
                 # the control plane: the dashboard's and `flocktrack fault`'s, on the world's timeline
                 reads[CONTROL] = None

@@ -121,12 +121,14 @@ class RunPlan:
 
     def observed(self, host: str | None = None) -> list[str]:
         """What an observer subscribes to so that it sees every payload once: the union of the writes (of the
-        nodes on ``host``), without the addressed copies (``…/to/<j>/…``) of what a node also puts for
-        observers."""
+        nodes on ``host``), without the addressed copies (``…/to/<j>/…``, ``…/via/<host>/…``) of what a node
+        also puts for observers."""
+        from agent.wire import addressed
+
         keys: dict[str, None] = {}
         for n in self.nodes:
             if host is None or n.host == host:
-                keys.update((w, None) for w in n.writes if "/to/" not in w)
+                keys.update((w, None) for w in n.writes if not addressed(w))
         return list(keys)
 
     def world_expects(self) -> list[str]:

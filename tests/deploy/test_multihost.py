@@ -87,6 +87,24 @@ def test_a_flock_placed_on_three_hosts_merges_into_the_single_host_run(net, tmp_
     assert {n.name for n in plan.processes("b")} == {"agent/4", "agent/5", "agent/6", "recorder/b"}
     shard_b = {k for k, _, _ in read_recording(tmp_path / "b" / "recording.mcap").messages}
     assert "agent/5/estimate" in shard_b and "agent/1/estimate" not in shard_b and "world/tick" not in shard_b
+    # a sensor's payload reaches the hearers on its own host on their own keys, and each other host once, on
+    # that host's key; every put was declared (the routers of a secure run would deny the others)
+    host_of = {f"agent/{i}": h for h in HOSTS for i in range(10) if plan.node(f"agent/{i}").host == h}
+    via = 0
+    for h in HOSTS:
+        for n in plan.processes(h):
+            if n.kind != "agent":
+                continue
+            stats = json.loads((tmp_path / h / "stats" / f"{n.slug}.json").read_text())
+            assert stats.get("undeclared", {}) == {}, n.name
+            for key, count in stats["sent_by_key"].items():
+                parts = key.split("/")
+                if parts[2] == "to" and parts[4] == "xchg":
+                    assert host_of[f"agent/{parts[3]}"] == h, (n.name, key)
+                if parts[2] == "via":
+                    assert parts[3] != h and parts[3] in HOSTS, (n.name, key)
+                    via += count
+    assert via > 0
     # the merge is the one-host run: the same summary and metrics, the same estimate of every node at every tick
     data = scenario_data(str(SCEN / "gu_hu_normal.toml"), sets)
     run_inproc_to_dir(parse_scenario(data, "gu_hu_normal.toml"), data, tmp_path / "in", record=True)

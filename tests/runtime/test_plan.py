@@ -125,6 +125,15 @@ def test_a_placement_puts_each_node_once_and_gives_every_host_its_own_router_lau
     assert [world[i + 1] for i, a in enumerate(world) if a == "--expect"] == [
         "launcher/a", "launcher/b", "recorder/a", "recorder/b"]
     assert plan.host("b").endpoint == "tcp/10.0.0.2:7448"
+    # a sensor sends another host one copy of a payload (its hosts' map, its own host's inbox); observers
+    # never read those copies
+    s5 = plan.node("agent/5")
+    assert s5.args[s5.args.index("--hosts") + 1] == "a:0-3,b:4-9"
+    assert "agent/5/via/*/xchg" in s5.writes and "agent/*/via/b/xchg" in s5.reads
+    assert "agent/*/via/a/xchg" in plan.node("agent/2").reads
+    for observer in ("recorder/a", "recorder/b"):
+        assert not any("/via/" in r for r in plan.node(observer).reads)
+    assert not any("/via/" in k for k in plan.observed())
 
 
 @pytest.mark.parametrize("text, key, fix", [

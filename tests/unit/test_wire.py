@@ -239,7 +239,7 @@ def test_an_addressed_exchange_payload_is_its_senders_and_unseen_by_observers():
     assert wire.xchg_key(3, 5) == "agent/3/to/5/xchg" and wire.decode("agent/3/to/5/xchg", data).src == 3
     for key, reason in (("agent/4/to/5/xchg", "not_owner"), ("agent/3/to/3/xchg", "bad_key"),
                         ("agent/3/to/x/xchg", "bad_key"), ("agent/3/to/5/meas", "bad_key"),
-                        ("agent/3/via/5/xchg", "bad_key"), ("agent/3/to/-1/xchg", "bad_key")):
+                        ("agent/3/over/5/xchg", "bad_key"), ("agent/3/to/-1/xchg", "bad_key")):
         with pytest.raises(wire.WireError) as e:
             wire.decode(key, data)
         assert e.value.reason == reason, key
