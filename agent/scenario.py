@@ -67,9 +67,9 @@ class RunCfg:
     deadline_s: float = 5.0
     burn_in: int = 0         #: ticks excluded from the RMSE summaries
     speed: float = 1.0       #: realtime factor: a tick lasts T / speed seconds of wall-clock time
-    #: realtime: "fixed" — the clock keeps T / speed whatever the flock does; "adaptive" — it yields while the
-    #: flock cannot keep it and comes back when it can (topology/pace.py)
-    pace: Literal["fixed", "adaptive"] = "fixed"
+    #: realtime: "adaptive" — the clock yields while the flock cannot keep it and comes back when it can
+    #: (topology/pace.py); "fixed" — it keeps T / speed whatever the flock does
+    pace: Literal["fixed", "adaptive"] = "adaptive"
 
 
 @dataclass(frozen=True)

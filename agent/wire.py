@@ -12,6 +12,9 @@ key                        type          published by
 ``agent/<i>/to/<j>/xchg``  Xchg          sensor i, to its out-neighbour j only (round r's consensus
                                          payload; j subscribes once, for life, to its inbox
                                          ``agent/*/to/<j>/xchg`` — delivery grows with degree, not N)
+``agent/<i>/via/<host>/   ViaXchg       sensor i, in a run placed on several hosts: the payload once
+xchg``                                   for all its out-neighbours on another host (named in ``to``;
+                                         they read ``agent/*/via/<host>/xchg``, the others drop it)
 ``agent/<i>/xchg``         Xchg          sensor i, the same payload once more for observers (recorder,
                                          dashboard); no sensor reads it
 ``agent/<i>/estimate``     Estimate      sensor i (x̂ₖ and x̂ₖ₊₁)

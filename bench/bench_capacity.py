@@ -1,7 +1,7 @@
 """The largest flock this machine holds in realtime: N sensors at a tick rate, minutes long, zero missed deadlines?
 
     python bench/bench_capacity.py [--sizes 12 16 20 24] [--hz 10] [--minutes 1] [--repeats 1] [--overload]
-                                   [--out bench/results/capacity.json]
+                                   [--pace adaptive|fixed] [--out bench/results/capacity.json]
 
 Each size is scenarios/demo.toml (the README's main job: Gu & Hu's intelligent target, distributed minimax,
 3 rounds, flocking) with ``sensors.n = N`` (placed by the scenario, not the demo's 12 fixed starts), in
@@ -37,8 +37,9 @@ from flocktrack.engine.run import run_zenoh_to_dir  # noqa: E402 - same
 from machine_gaps import GapMonitor  # noqa: E402 - bench/ is this script's directory
 
 
-def size_data(n: int, hz: float, minutes: float) -> dict:
-    data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [], **{"run.mode": "realtime", "sensors.n": n})
+def size_data(n: int, hz: float, minutes: float, pace: str = "adaptive") -> dict:
+    data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [], **{"run.mode": "realtime", "sensors.n": n,
+                                                                      "run.pace": pace})
     data.setdefault("sensors", {}).pop("positions", None)     # the demo's 12 fixed starts: let N be placed
     run = data["run"]
     run["speed"] = round(float(run["T"]) * hz, 6)
@@ -46,8 +47,8 @@ def size_data(n: int, hz: float, minutes: float) -> dict:
     return data
 
 
-def run_size(n: int, hz: float, minutes: float) -> dict:
-    data = size_data(n, hz, minutes)
+def run_size(n: int, hz: float, minutes: float, pace: str = "adaptive") -> dict:
+    data = size_data(n, hz, minutes, pace)
     sc = parse_scenario(data, f"demo.toml (sensors.n = {n})")
     print(f"[capacity] {n} sensors, {sc.run.ticks} ticks at {hz:g} Hz ({minutes:g} min)", flush=True)
     with tempfile.TemporaryDirectory(prefix=f"capacity{n}_") as d:
@@ -106,13 +107,15 @@ def main(argv: list[str] | None = None) -> int:
                          "at most 1 in 1000 rounds")
     ap.add_argument("--overload", action="store_true",
                     help="then run 2 × the largest size that holds once: its RMSE against that size's")
+    ap.add_argument("--pace", choices=["adaptive", "fixed"], default="adaptive",
+                    help="the realtime clock (run.pace): adaptive yields under overload (the default), fixed never")
     ap.add_argument("--stop-at-first-miss", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "capacity.json")
     a = ap.parse_args(argv)
-    res = {"date": time.strftime("%Y-%m-%d"), "hz": a.hz, "minutes": a.minutes, "repeats": a.repeats,
+    res = {"date": time.strftime("%Y-%m-%d"), "hz": a.hz, "minutes": a.minutes, "repeats": a.repeats, "pace": a.pace,
            "machine": {"cpus": os.cpu_count()}, "sizes": []}
     for n in a.sizes:
-        runs = [run_size(n, a.hz, a.minutes) for _ in range(a.repeats)]
+        runs = [run_size(n, a.hz, a.minutes, a.pace) for _ in range(a.repeats)]
         res["sizes"].append(size_verdict(n, runs))
         _write(a.out, res)
         if a.stop_at_first_miss and not res["sizes"][-1]["holds"]:
@@ -121,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     res["largest_holding"] = max(s["sensors"] for s in held) if held else None
     if a.overload and held:
         base = max(held, key=lambda s: s["sensors"])
-        over = run_size(2 * base["sensors"], a.hz, a.minutes)
+        over = run_size(2 * base["sensors"], a.hz, a.minutes, a.pace)
         rmse = base["network_rmse_median"]
         res["overload"] = {"sensors": over["sensors"], "of_holding": base["sensors"], "run": over,
                            "rmse_ratio": over["network_rmse"] / rmse if rmse else None,

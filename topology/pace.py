@@ -27,10 +27,13 @@ either. (Measured: deciding by the 90th percentile kept a 12-sensor flock stretc
 2 s load burst; coming back in one step instead of by ``RELAX`` made an overloaded flock fail, stretch,
 recover and fail again until its sensors fell out of step with each other.)
 
-It is not the default: near capacity it costs pace. A flock at the edge fails a tick now and then, and the
-rounds of a stretched tick (which scale with its period) end later, so the clock comes back slowly — 40 sensors
-at 10 Hz on 2 cores kept 6.9 ticks/s with it (336 missed round deadlines in a minute) against 9.9 on the fixed
-clock (467 in five). It is for runs that must not diverge above capacity.
+It is the default, because a fixed clock above capacity does not degrade, it collapses: 40 sensors at 10 Hz on
+2 cores, 5 minutes on the fixed clock, missed 185 489–243 624 round deadlines in each of 3 runs and the network
+RMSE reached 10⁵–10⁹ (the intelligent target pushes on every missed update); adaptive, 7.3 ticks/s kept,
+114 missed in a minute, RMSE 0.039. Near capacity it costs pace — a flock at the edge fails a tick now and then,
+and the rounds of a stretched tick (which scale with its period) end later, so the clock comes back slowly.
+``run.pace = "fixed"`` keeps the clock whatever happens, for runs whose timing matters more than their
+estimates.
 
 Every tick carries its period (``Tick.period``), and the sensors and
 the target fit their round slots and deadlines into it (agent/runner.py ``WaitBudget.scaled``), so a stretched

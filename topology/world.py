@@ -10,7 +10,7 @@ At tick k the world publishes ``tick`` {k, t, links, weights, b, δ_max, alive, 
 It then waits for every alive sensor's ``state`` k and the target's ``state`` k (or the deadline),
 and starts tick k+1 — in realtime, its clock closes tick k at t0 + (k+1)·T/speed whatever has arrived, except
 tick 0, the warm-up (routes and publishers being set up), which closes on its states. While the flock cannot
-keep that pace (its states do not come) a run with ``run.pace = "adaptive"`` has the clock yield — the period
+keep that pace (its states do not come) the clock yields (``run.pace = "adaptive"``, the default) — the period
 stretches and comes back once the flock keeps up (pace.py). Each realtime tick announces its period. It is the
 only role that knows all positions.
 
