@@ -731,10 +731,10 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     c.TYPE: c for c in (Tick, Truth, Meas, Xchg, Estimate, State, Control, End)
 }
 
-#: (first key segment, message type) -> whether the segment after it is an agent id
-#: a host's name in a key (what a placement allows: flocktrack/plan/placement.py)
-_HOST = re.compile(r"[a-z0-9][a-z0-9_]*")
+#: a host's name: in a placement file (flocktrack/plan/placement.py) and in a key (``agent/<i>/via/<host>/xchg``)
+HOST_NAME = re.compile(r"[a-z0-9][a-z0-9_]*")
 
+#: (first key segment, message type) -> whether the segment after it is an agent id
 _KEY_TYPES = {
     ("world", "tick"): Tick,
     ("world", "end"): End,
@@ -801,7 +801,7 @@ def expected_type(key: str) -> tuple[type[Message], int | None]:
             raise WireError("bad_key", key)
         return _KEY_TYPES[("agent", parts[4])], owner
     if parts[0] == "agent" and len(parts) == 5 and parts[2] == "via" and parts[4] == "xchg":
-        if not parts[1].isdigit() or _HOST.fullmatch(parts[3]) is None:
+        if not parts[1].isdigit() or HOST_NAME.fullmatch(parts[3]) is None:
             raise WireError("bad_key", key)
         return ViaXchg, int(parts[1])
     if parts[0] == "agent" and len(parts) == 3:

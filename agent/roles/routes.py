@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import re
 
-from ..wire import Xchg, ViaXchg, host_inbox, inbox, via_key, xchg_key
+from ..wire import HOST_NAME, Xchg, ViaXchg, host_inbox, inbox, via_key, xchg_key
 
-_SPAN = re.compile(r"([a-z0-9][a-z0-9_]*):(\d+)(?:-(\d+))?")
+_SPAN = re.compile(rf"({HOST_NAME.pattern}):(\d+)(?:-(\d+))?")
 
 
 class ExchangeRoutes:
@@ -28,7 +28,8 @@ class ExchangeRoutes:
     def __init__(self, i: int, hosts: list[str] | None = None):
         self.i = int(i)
         self.hosts = hosts
-        self.direct: list[str] = [f"agent/{self.i}/xchg"]   # this tick's addressed keys, + observers'
+        self._observers = f"agent/{self.i}/xchg"             # the observers' copy, every tick
+        self.direct: list[str] = [self._observers]          # this tick's addressed keys, + observers'
         self.via: list[str] = []                             # this tick's per-host keys
         self.remote: list[int] = []                          # the hearers on other hosts (ViaXchg.to)
 
@@ -49,7 +50,7 @@ class ExchangeRoutes:
         else:
             near = [j for j in hearers if self.hosts[j] == mine]
             far = [j for j in hearers if self.hosts[j] != mine]
-        self.direct = [xchg_key(self.i, j) for j in near] + [f"agent/{self.i}/xchg"]
+        self.direct = [xchg_key(self.i, j) for j in near] + [self._observers]
         self.remote = far
         self.via = [via_key(self.i, h) for h in dict.fromkeys(self.hosts[j] for j in far)] if far else []
 

@@ -35,11 +35,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from agent.scenario import ScenarioError
+from agent.wire import HOST_NAME
 
 from .model import Host
 
 PER_HOST = ("router", "launcher", "recorder")   #: the kinds every host has one of (not placed)
-_HOST_NAME = re.compile(r"[a-z0-9][a-z0-9_]*")
 _DNS = re.compile(r"(?=.{1,253}$)([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}"
                   r"[A-Za-z0-9])?)*")
 _PATTERN = re.compile(r"(?P<kind>[a-z_]+)/(?:(?P<one>\d+)|(?P<lo>\d+)-(?P<hi>\d+)|(?P<all>\*))|(?P<any>\*)")
@@ -146,7 +146,7 @@ def parse_placement(data: dict, source: str) -> Placement:
     hosts, seen = [], {}
     for name, t in hosts_t.items():
         key = f"hosts.{name}"
-        if not _HOST_NAME.fullmatch(name):
+        if not HOST_NAME.fullmatch(name):
             raise ScenarioError(source, key, f"{name!r} is not a host name of a placement",
                                 "use lower-case letters, digits and _ (it names the host's nodes: router/NAME)")
         if not isinstance(t, dict):
