@@ -31,7 +31,9 @@ estimate``                               liveliness token (re)appeared: a restar
 =========================  ============  =======================================================
 
 :func:`decode` validates everything it returns: field types, array shapes and sizes, finite values,
-and that the sender named in the message owns the key it came on. A bad message raises
+and that the sender named in the message owns the key it came on. It reads the bytes straight into the
+message's wire form (:mod:`agent.wire_form`, msgspec Structs: the map's shape, types, lengths and integer
+bounds are checked in compiled code), then checks here what a form cannot say. A bad message raises
 :class:`WireError` whose ``reason`` is a short stable label; buses drop such messages and count them
 per reason — they never reach a role. A ``Control``'s arguments are typed, once, for the use they have:
 :func:`fault_event` (a fault-plan transition on ``world/event``, a launcher ack) and :func:`command` (a
@@ -50,13 +52,12 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, ClassVar
 
 import msgpack
+import msgspec
 import numpy as np
 import orjson
 
-MAX_MESSAGE_BYTES = 1 << 20      #: larger payloads are rejected before unpacking
-MAX_ARRAY_ELEMENTS = 1 << 16     #: per array
-MAX_LIST_LEN = 4096              #: per list field (neighbour lists, per-node vectors)
-MAX_PAYLOAD_ENTRIES = 32         #: entries of an exchange payload
+from agent import wire_form as wf
+from agent.wire_form import MAX_ARRAY_ELEMENTS, MAX_LIST_LEN, MAX_MESSAGE_BYTES, MAX_PAYLOAD_ENTRIES  # noqa: F401
 
 
 class WireError(ValueError):
@@ -81,29 +82,57 @@ def _enc_array(a: np.ndarray) -> dict:
 _SUM = np.add.reduce   # (ndarray.sum without numpy's Python wrappers: decoding is the hot path)
 
 
-def _dec_array(v: Any, ndim: tuple[int, ...] = (1, 2)) -> np.ndarray:
-    if type(v) is not dict or len(v) != 2 or "s" not in v or "d" not in v:
-        raise WireError("bad_array", "array must be {s: shape, d: bytes}")
-    shape, data = v["s"], v["d"]
-    if type(shape) is not list or len(shape) not in ndim:
-        raise WireError("bad_shape", f"shape {shape!r}")
-    size = 1
-    for s in shape:
-        if type(s) is not int or not 0 <= s <= MAX_ARRAY_ELEMENTS:  # (type() is int: not bool)
+def _arrays(*arrs: wf.Arr | None, ndim: tuple[tuple[int, ...], ...] = ()) -> list[np.ndarray | None]:
+    """The arrays of a message's decoded :class:`~agent.wire_form.Arr` (None stays None), after the checks
+    their form cannot make: dimensions (``ndim[i]``, default 1 or 2), size, data length, finite values. All
+    of a message's arrays are read as views of one buffer, in one pass (the hot path: every sensor decodes
+    every exchange payload of its neighbours; per array it would cost twice as much)."""
+    sizes = []
+    for i, a in enumerate(arrs):
+        if a is None:
+            sizes.append(0)
+            continue
+        shape = a.s
+        if len(shape) not in (ndim[i] if i < len(ndim) else (1, 2)):
             raise WireError("bad_shape", f"shape {shape!r}")
-        size *= s
-    if type(data) is not bytes:
-        raise WireError("bad_array", "data must be bytes")
-    if size > MAX_ARRAY_ELEMENTS:
-        raise WireError("too_large", f"{size} elements")
-    if len(data) != 8 * size:
-        raise WireError("bad_shape", f"{len(data)} bytes for shape {shape}")
-    a = np.frombuffer(data, dtype="<f8").reshape(shape).copy()
+        size = shape[0] if len(shape) == 1 else shape[0] * shape[1]
+        if size > MAX_ARRAY_ELEMENTS:
+            raise WireError("too_large", f"{size} elements")
+        if len(a.d) != 8 * size:
+            raise WireError("bad_shape", f"{len(a.d)} bytes for shape {shape}")
+        sizes.append(size)
+    flat = np.frombuffer(bytearray().join([a.d for a in arrs if a is not None]), dtype="<f8")
     # a finite sum proves every element finite (NaN/inf propagate); only a non-finite sum (which an
     # overflow of huge finite values can also give) needs the element-wise test
-    if not math.isfinite(_SUM(a, axis=None)) and not np.isfinite(a).all():
+    if not math.isfinite(_SUM(flat)) and not np.isfinite(flat).all():
         raise WireError("non_finite", "array holds NaN or inf")
-    return a
+    out: list[np.ndarray | None] = []
+    o = 0
+    for a, size in zip(arrs, sizes):
+        if a is None:
+            out.append(None)
+            continue
+        v = flat[o:o + size]
+        out.append(v if len(a.s) == 1 else v.reshape(a.s))
+        o += size
+    return out
+
+
+def _named(m: dict[str, wf.Arr]) -> dict[str, np.ndarray]:
+    """A map of arrays (an exchange payload, an estimate's aux), read as :func:`_arrays` reads them."""
+    return dict(zip(m, _arrays(*m.values()))) if m else {}
+
+
+def _finite(v: float, name: str) -> float:
+    if not math.isfinite(v):
+        raise WireError("non_finite", f"{name} is not finite")
+    return v
+
+
+def _finite_list(v: list[float], name: str) -> list[float]:
+    if not math.isfinite(sum(v)) and not all(map(math.isfinite, v)):   # (as for arrays: the sum first)
+        raise WireError("non_finite", f"{name} is not finite")
+    return v
 
 
 # --------------------------------------------------------------------------- field checks
@@ -141,6 +170,7 @@ class Message:
     """Base class. ``src`` is the sender's id within its role (0 for world/target/fusion)."""
 
     TYPE: ClassVar[str] = ""
+    FORM: ClassVar[type[wf.Form]] = wf.Form   #: its wire form (agent/wire_form.py)
     src: int = 0
     k: int = 0
 
@@ -151,13 +181,12 @@ class Message:
         return out
 
     @classmethod
-    def from_wire(cls, d: dict) -> "Message":
-        src = _int(d.get("src"), "src", 0, MAX_LIST_LEN)
-        k = _int(d.get("k"), "k", 0)
-        return cls(src=src, k=k, **cls._fields_from_wire(d))
+    def from_form(cls, f: wf.Form) -> "Message":
+        """The message of its decoded wire form (whose type, sender and tick the form has checked)."""
+        return cls(src=f.src, k=f.k, **cls._fields_from_form(f))
 
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
+    def _fields_from_form(cls, f) -> dict:
         return {}
 
     def to_json(self) -> dict:
@@ -228,67 +257,40 @@ class Tick(Message):
     positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     period: float = 0.0   #: realtime: the wall-clock seconds this tick lasts (topology/pace.py); 0 in lockstep
 
+    FORM: ClassVar[type[wf.Form]] = wf.TickForm
+
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        n = _int(d.get("n"), "n", 0, MAX_LIST_LEN)
-        links = _list(d.get("links"), "links")
-        weights = _list(d.get("weights"), "weights")
-        b = _list(d.get("b"), "b")
-        alive = _list(d.get("alive"), "alive")
-        if not (len(links) == len(weights) == len(b) == len(alive) == n):
+    def _fields_from_form(cls, f: wf.TickForm) -> dict:
+        n = f.n
+        if not (len(f.links) == len(f.weights) == len(f.b) == len(f.alive) == n):
             raise WireError("bad_shape", "links/weights/b/alive must have n entries")
-        pos = _dec_array(d.get("positions"), ndim=(2,))
+        pos, = _arrays(f.positions, ndim=((2,),))
         if pos.shape[0] != n:
             raise WireError("bad_shape", "positions must have n rows")
-        if set(map(type, alive)) - {bool}:
-            raise WireError("bad_field", "alive must be booleans")
-        fb = _floats(b, "b[i]")
-        return dict(t=_float(d.get("t"), "t"), n=n, links=links, weights=_numbers(weights, links),
-                    b=b if fb is None else fb, delta_max=_int(d.get("delta_max"), "delta_max", 0, n),
-                    alive=alive, positions=pos, period=_float(d.get("period", 0.0), "period"))
+        if f.delta_max > n:
+            raise WireError("bad_field", f"delta_max must be an int in [0, {n}], got {f.delta_max}")
+        _neighbours(f.links, f.weights)
+        return dict(t=_finite(f.t, "t"), n=n, links=f.links, weights=f.weights, b=_finite_list(f.b, "b[i]"),
+                    delta_max=f.delta_max, alive=f.alive, positions=pos, period=_finite(f.period, "period"))
 
 
-def _numbers(weights: list, links: list) -> list[list[float]]:
-    """Validate a tick's neighbour lists (returned as decoded) and their weights in a few vectorised passes
-    rather than one check per entry — every sensor decodes every tick, O(N · degree) entries (N = 100:
-    ~450; 2.3 → 0.3 ms). Each links[i] must be a list of ints in [0, n) without i, sorted and unique,
-    weights[i] as many finite numbers. Returns the weights as floats."""
+def _neighbours(links: list[list[int]], weights: list[list[float]]) -> None:
+    """Validate a tick's neighbour lists and their weights in a few vectorised passes rather than one check
+    per entry — every sensor decodes every tick, O(N · degree) entries. Each links[i] (ints ≥ 0 by its form)
+    must be within [0, n) without i, sorted and unique, weights[i] as many finite numbers."""
     n = len(links)
-    if set(map(type, links)) - {list} or set(map(type, weights)) - {list}:
-        raise WireError("bad_field", "links[i] and weights[i] must be lists")
     lens = list(map(len, links))
     if lens != list(map(len, weights)):
         raise WireError("bad_field", "links[i] must be aligned with weights[i]")
     flat = [j for li in links for j in li]
-    if set(map(type, flat)) - {int}:                    # (type(True) is bool: booleans are refused too)
-        raise WireError("bad_field", "links[i][j] must be ints")
-    if flat and (min(flat) < 0 or max(flat) >= n):
+    if flat and max(flat) >= n:
         raise WireError("bad_field", f"links[i][j] must be in [0, {n - 1}]")
     col = np.array(flat, dtype=np.int64)
     row = np.repeat(np.arange(n), lens)
     if (col == row).any() or ((row[1:] == row[:-1]) & (col[1:] <= col[:-1])).any():
         bad = next(i for i, li in enumerate(links) if i in li or li != sorted(set(li)))
         raise WireError("bad_field", f"links[{bad}] must be sorted, unique, without self, aligned with weights")
-    flat_w = _floats([w for wi in weights for w in wi], "weights[i][j]")
-    if flat_w is not None:      # some were ints: rows of floats
-        it = iter(flat_w)
-        return [[next(it) for _ in wi] for wi in weights]
-    return weights
-
-
-def _floats(v: list, name: str) -> list[float] | None:
-    """Check that ``v`` holds finite numbers (not bools), vectorised. None: all floats already, use ``v``
-    as it is; else ``v`` as floats."""
-    types = set(map(type, v))
-    if types - {float, int}:
-        raise WireError("bad_field", f"{name} must be numbers")
-    try:
-        finite = bool(np.isfinite(np.array(v, dtype=float)).all())
-    except OverflowError:             # an int beyond float range
-        finite = False
-    if not finite:
-        raise WireError("non_finite", f"{name} is not finite")
-    return None if int not in types else [float(x) for x in v]
+    _finite_list([w for wi in weights for w in wi], "weights[i][j]")
 
 
 @dataclass
@@ -299,9 +301,12 @@ class Truth(Message):
     t: float = 0.0
     x: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
+    FORM: ClassVar[type[wf.Form]] = wf.TruthForm
+
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        return dict(t=_float(d.get("t"), "t"), x=_dec_array(d.get("x"), ndim=(1,)))
+    def _fields_from_form(cls, f: wf.TruthForm) -> dict:
+        x, = _arrays(f.x, ndim=((1,),))
+        return dict(t=_finite(f.t, "t"), x=x)
 
 
 @dataclass
@@ -315,11 +320,12 @@ class Meas(Message):
     pos: np.ndarray = field(default_factory=lambda: np.zeros(0))
     v: np.ndarray | None = None   #: the measurement disturbance drawn (simulation ground truth), if known
 
+    FORM: ClassVar[type[wf.Form]] = wf.MeasForm
+
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        v = d.get("v")
-        return dict(t=_float(d.get("t"), "t"), y=_dec_array(d.get("y"), ndim=(1,)), b=_float(d.get("b"), "b"),
-                    pos=_dec_array(d.get("pos"), ndim=(1,)), v=None if v is None else _dec_array(v, ndim=(1,)))
+    def _fields_from_form(cls, f: wf.MeasForm) -> dict:
+        y, pos, v = _arrays(f.y, f.pos, f.v, ndim=((1,),) * 3)
+        return dict(t=_finite(f.t, "t"), y=y, b=_finite(f.b, "b"), pos=pos, v=v)
 
 
 @dataclass
@@ -330,23 +336,19 @@ class Xchg(Message):
     r: int = 0
     payload: dict[str, np.ndarray] = field(default_factory=dict)
 
-    @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        p = d.get("payload")
-        if not isinstance(p, dict) or len(p) > MAX_PAYLOAD_ENTRIES:
-            raise WireError("bad_field", "payload must be a map of at most 32 arrays")
-        out = {}
-        for key, v in p.items():
-            out[_str(key, "payload key", 64)] = _dec_array(v)
-        return dict(r=_int(d.get("r"), "r", 0, 1000), payload=out)
+    FORM: ClassVar[type[wf.Form]] = wf.XchgForm
 
     @classmethod
-    def from_wire(cls, d: dict) -> Message:
+    def _fields_from_form(cls, f: wf.XchgForm) -> dict:
+        return dict(r=f.r, payload=_named(f.payload))
+
+    @classmethod
+    def from_form(cls, f: wf.XchgForm) -> Message:
         try:
-            return super().from_wire(d)
+            return super().from_form(f)
         except WireError as exc:
             if exc.reason in _UNUSABLE_ARRAY:
-                exc.header = UnusableXchg.of(d, exc.reason)
+                exc.header = UnusableXchg(src=f.src, k=f.k, r=f.r, reason=exc.reason)
             raise
 
 
@@ -364,15 +366,6 @@ class UnusableXchg(Xchg):
 
     reason: str = ""
 
-    @classmethod
-    def of(cls, d: dict, reason: str) -> UnusableXchg | None:
-        """The header of the exchange payload ``d``, or None when the header itself is malformed."""
-        try:
-            return cls(src=_int(d.get("src"), "src", 0, MAX_LIST_LEN), k=_int(d.get("k"), "k", 0),
-                       r=_int(d.get("r"), "r", 0, 1000), reason=reason)
-        except WireError:
-            return None
-
 
 @dataclass
 class ViaXchg(Xchg):
@@ -382,13 +375,11 @@ class ViaXchg(Xchg):
     hearer (:mod:`agent.roles.routes`)."""
 
     to: list[int] = field(default_factory=list)
+    FORM: ClassVar[type[wf.Form]] = wf.ViaXchgForm
 
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        to = int_list(_list(d.get("to"), "to"))
-        if to is None:
-            raise WireError("bad_field", f"to must be a list of at most {MAX_LIST_LEN} sensor ids")
-        return super()._fields_from_wire(d) | {"to": to}
+    def _fields_from_form(cls, f: wf.ViaXchgForm) -> dict:
+        return super()._fields_from_form(f) | {"to": f.to}
 
 
 @dataclass
@@ -403,21 +394,16 @@ class Estimate(Message):
     name: str = ""
     aux: dict[str, np.ndarray] = field(default_factory=dict)  #: estimator diagnostics (e.g. channel noise)
 
+    FORM: ClassVar[type[wf.Form]] = wf.EstimateForm
+
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        aux = d.get("aux", {})
-        if not isinstance(aux, dict) or len(aux) > MAX_PAYLOAD_ENTRIES:
-            raise WireError("bad_field", "aux must be a map of at most 32 arrays")
-        aux = {_str(k, "aux key", 64): _dec_array(v) for k, v in aux.items()}
-        x = _dec_array(d.get("x"), ndim=(1,))
-        xn = _dec_array(d.get("x_next"), ndim=(1,))
+    def _fields_from_form(cls, f: wf.EstimateForm) -> dict:
+        x, xn, P = _arrays(f.x, f.x_next, f.P, ndim=((1,), (1,), (2,)))
         if xn.shape != x.shape:
             raise WireError("bad_shape", "x_next must have the shape of x")
-        P = d.get("P")
-        P = None if P is None else _dec_array(P, ndim=(2,))
         if P is not None and P.shape != (x.size, x.size):
             raise WireError("bad_shape", "P must be len(x) × len(x)")
-        return dict(x=x, x_next=xn, P=P, name=_str(d.get("name", ""), "name", 64), aux=aux)
+        return dict(x=x, x_next=xn, P=P, name=f.name, aux=_named(f.aux))
 
 
 @dataclass
@@ -429,14 +415,14 @@ class State(Message):
     vel: np.ndarray = field(default_factory=lambda: np.zeros(0))
     w: np.ndarray | None = None   #: the target's process disturbance over tick k (simulation ground truth)
 
+    FORM: ClassVar[type[wf.Form]] = wf.StateForm
+
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        pos = _dec_array(d.get("pos"), ndim=(1,))
-        vel = _dec_array(d.get("vel"), ndim=(1,))
+    def _fields_from_form(cls, f: wf.StateForm) -> dict:
+        pos, vel, w = _arrays(f.pos, f.vel, f.w, ndim=((1,),) * 3)
         if pos.shape != vel.shape or pos.size > 3:
             raise WireError("bad_shape", "pos and vel must be equal-length vectors of dimension ≤ 3")
-        w = d.get("w")
-        return dict(pos=pos, vel=vel, w=None if w is None else _dec_array(w, ndim=(1,)))
+        return dict(pos=pos, vel=vel, w=w)
 
 
 @dataclass
@@ -447,26 +433,18 @@ class Control(Message):
     verb: str = ""
     args: dict[str, Any] = field(default_factory=dict)
 
+    FORM: ClassVar[type[wf.Form]] = wf.ControlForm
+
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        args = d.get("args", {})
-        if not isinstance(args, dict) or len(args) > 64:
-            raise WireError("bad_field", "args must be a map")
-        clean = {}
-        for a, v in args.items():
-            a = _str(a, "arg name", 64)
-            if isinstance(v, (bool, str)) or v is None:
-                clean[a] = v
-            elif isinstance(v, int):
-                clean[a] = _int(v, a, -(2**53), 2**53)
-            elif isinstance(v, float):
-                clean[a] = _float(v, a)
-            elif isinstance(v, list) and len(v) <= MAX_LIST_LEN and all(
-                    isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
-                clean[a] = [_float(x, a) for x in v]
-            else:
-                raise WireError("bad_field", f"arg {a} has an unsupported type")
-        return dict(verb=_str(d.get("verb"), "verb", 64), args=clean)
+    def _fields_from_form(cls, f: wf.ControlForm) -> dict:
+        args: dict[str, Any] = {}
+        for a, v in f.args.items():        # (None, flags, texts and bounded ints are as their form says)
+            if type(v) is float:
+                v = _finite(v, a)
+            elif type(v) is list:
+                v = _finite_list([float(x) for x in v], a)
+            args[a] = v
+        return dict(verb=f.verb, args=args)
 
 
 #: every verb on ``control/<verb>`` and who executes it (the world: topology/world.py WORLD_VERBS; the
@@ -722,9 +700,11 @@ class End(Message):
     TYPE: ClassVar[str] = "end"
     reason: str = "done"
 
+    FORM: ClassVar[type[wf.Form]] = wf.EndForm
+
     @classmethod
-    def _fields_from_wire(cls, d: dict) -> dict:
-        return dict(reason=_str(d.get("reason", "done"), "reason", 64))
+    def _fields_from_form(cls, f: wf.EndForm) -> dict:
+        return dict(reason=f.reason)
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
@@ -833,15 +813,46 @@ def decode(key: str, data: bytes) -> Message:
         raise WireError("too_large", f"{len(data)} bytes")
     cls, owner = expected_type(key)
     try:
-        d = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True)
-    except Exception as exc:  # msgpack raises many types on hostile input
-        raise WireError("bad_encoding", type(exc).__name__) from None
-    if not isinstance(d, dict):
-        raise WireError("bad_encoding", "top level must be a map")
-    if d.get("type") != cls.TYPE:
-        raise WireError("wrong_type", f"{d.get('type')!r} on {key}")
+        form = _decoder(cls).decode(data)
+    except msgspec.ValidationError as exc:
+        raise _refusal(cls, exc, wf.type_of(data), lambda: _XCHG_HEADER.decode(data), owner) from None
+    except msgspec.DecodeError as exc:
+        raise WireError("bad_encoding", str(exc)) from None
+    return _message(cls, form, key, owner)
+
+
+@functools.cache
+def _decoder(cls: type[Message]) -> msgspec.msgpack.Decoder:
+    return msgspec.msgpack.Decoder(cls.FORM)
+
+
+_XCHG_HEADER = msgspec.msgpack.Decoder(wf.XchgHeader)
+
+
+def _refusal(cls: type[Message], exc: msgspec.ValidationError, claimed: Any, header, owner: int | None) -> WireError:
+    """The :class:`WireError` of a message its form refused: ``wrong_type`` when it claims another type, else
+    the fault's label. An exchange payload refused for its arrays keeps its header when ``header()`` (the
+    message read as an :class:`~agent.wire_form.XchgHeader`) is whole and names the key's owner."""
+    label = wf.reason(exc, _array_fields(cls))
+    if label != "bad_encoding" and claimed != cls.TYPE:
+        return WireError("wrong_type", f"{claimed!r} for {cls.TYPE}")
+    err = WireError(label, str(exc))
+    if issubclass(cls, Xchg) and label in _UNUSABLE_ARRAY:
+        try:
+            h = header()
+        except msgspec.MsgspecError:
+            h = None
+        if h is not None and h.type == cls.TYPE and owner in (None, h.src):
+            err.header = UnusableXchg(src=h.src, k=h.k, r=h.r, reason=label)
+    return err
+
+
+def _message(cls: type[Message], form: wf.Form, key: str, owner: int | None) -> Message:
+    """The message of a decoded form, after the checks the form cannot make (its type; values; ownership)."""
+    if form.type != cls.TYPE:
+        raise WireError("wrong_type", f"{form.type!r} on {key}")
     try:
-        msg = cls.from_wire(d)
+        msg = cls.from_form(form)
     except WireError as exc:
         if exc.header is not None and owner is not None and exc.header.src != owner:
             exc.header = None       # (a header that lies about its sender says nothing)
@@ -916,11 +927,10 @@ def from_json(d: dict) -> Message:
         else:
             w[k] = v
     try:
-        return cls.from_wire(w)
-    except WireError:
-        raise
-    except Exception as exc:
-        raise WireError("bad_field", f"{type(exc).__name__}: {exc}") from None
+        form = msgspec.convert(w, cls.FORM)
+    except msgspec.ValidationError as exc:
+        raise _refusal(cls, exc, w.get("type"), lambda: msgspec.convert(w, wf.XchgHeader), None) from None
+    return _message(cls, form, cls.TYPE, None)
 
 
 def json_schema(cls: type[Message]) -> dict:
