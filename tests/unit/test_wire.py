@@ -284,3 +284,52 @@ def test_an_unusable_exchange_payload_is_dropped_but_its_round_hears_that_it_cam
     bus.drain()
     assert [type(m).__name__ for m in got] == ["UnusableXchg", "Xchg"] and got[0].payload == {}
     assert bus.stats.dropped == {"non_finite": 1} and bus.stats.received == 1
+
+
+def test_encode_writes_the_bytes_of_the_wire_map():
+    """``encode`` (msgspec) writes exactly ``msgpack.packb(msg.to_wire())``: numpy scalars as numbers, arrays as
+    ``{s, d}``, ``type`` first."""
+    msgs = [_tick(), wire.Truth(k=1, t=0.1, x=np.ones(4)),
+            wire.Meas(src=1, k=2, t=0.2, y=np.ones(2), b=np.float64(0.5), pos=np.ones(2), v=None),
+            wire.Xchg(src=3, k=9, r=2, payload={"chi1": np.eye(2), "chi2": np.arange(3.0)}),
+            wire.ViaXchg(src=3, k=9, r=2, payload={"a": np.ones(2)}, to=[4, 5]),
+            wire.Estimate(src=2, k=7, x=np.ones(3), x_next=np.ones(3), P=np.eye(3), name="N", aux={"e": np.ones(1)}),
+            wire.State(src=1, k=2, pos=np.ones(2), vel=np.arange(2), w=None),
+            wire.Control(verb="speed", args={"factor": 2.0, "l": [1, 2.5], "s": "x", "n": None, "b": True}),
+            wire.End(k=3, reason="stopped")]
+    msgs[0].alive = [True, np.bool_(True), True]
+    for m in msgs:
+        assert wire.encode(m) == msgpack.packb(m.to_wire(), use_bin_type=True), type(m).__name__
+
+
+@pytest.mark.parametrize("edit,reason,header", [
+    (lambda d: d.pop("type"), "wrong_type", False),
+    (lambda d: d.update(type="estimate"), "wrong_type", False),
+    (lambda d: d.update(r=True), "bad_field", False),                       # a flag is not a round
+    (lambda d: d["payload"].update({"k" * 65: d["payload"]["a"]}), "bad_field", False),
+    (lambda d: d.update(payload=[1]), "bad_field", False),
+    (lambda d: d["payload"]["a"].update(e=1), "bad_array", True),          # an array holds s and d only
+    (lambda d: d["payload"]["a"].update(d="text"), "bad_array", True),
+    (lambda d: d["payload"]["a"].update(s=[2, 2, 2]), "bad_shape", True),
+    (lambda d: d["payload"]["a"].update(s=[-2]), "bad_shape", True),
+    (lambda d: d["payload"].update(b=5), "bad_array", True),
+])
+def test_an_exchange_payload_refused_by_its_form_says_why(edit, reason, header):
+    """What msgspec refuses is labelled like the rest: a fault inside an array keeps the payload's header
+    (its round need not wait for it); anything else says nothing of it."""
+    d = wire.Xchg(src=2, k=7, r=1, payload={"a": np.zeros(2)}).to_wire()
+    edit(d)
+    with pytest.raises(wire.WireError) as e:
+        wire.decode("agent/2/to/0/xchg", msgpack.packb(d, use_bin_type=True))
+    assert e.value.reason == reason
+    assert (e.value.header is not None) == header
+    if header:
+        assert (e.value.header.src, e.value.header.k, e.value.header.r) == (2, 7, 1)
+
+
+def test_a_refused_key_is_refused_every_time():
+    """Keys are remembered once read; a bad one never is."""
+    for _ in range(2):
+        with pytest.raises(wire.WireError, match="bad_key"):
+            wire.expected_type("agent/3/to/3/xchg")
+    assert wire.expected_type("agent/3/to/4/xchg") == (wire.Xchg, 3)
