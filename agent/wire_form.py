@@ -92,6 +92,10 @@ class ViaXchgForm(XchgForm):
     to: Annotated[list[SensorId], Meta(max_length=MAX_LIST_LEN)]
 
 
+class RoundsForm(Form):
+    payloads: Annotated[list[Arrays], Meta(max_length=MAX_ROUND)]
+
+
 class EstimateForm(Form):
     x: Arr
     x_next: Arr

@@ -66,16 +66,16 @@ def tick_bytes(n: int, k: int, rounds: int, T: float) -> list[tuple[str, bytes]]
     """One tick of the synthetic flock as wire bytes (exchange payloads sized like the minimax filter's)."""
     out = []
     rng = np.random.default_rng(k)
-    for key, m in synthetic_tick(n, k, rounds=rounds, T=T):
+    for key, m in synthetic_tick(n, k, T=T):
         if m is None:
             parts = key.split("/")
             if key == "target/state":
                 m = wire.State(k=k, pos=rng.normal(size=2), vel=rng.normal(size=2))
             elif parts[2] == "meas":
                 m = wire.Meas(src=int(parts[1]), k=k, t=k * T, y=rng.normal(size=2), b=1.0, pos=rng.normal(size=2))
-            else:
-                m = wire.Xchg(src=int(parts[1]), k=k, r=0, payload={"x": rng.normal(size=4),
-                                                                     "P": np.eye(4) * rng.uniform(1, 2)})
+            else:     # the observers' copy of the tick's exchange rounds
+                m = wire.Rounds(src=int(parts[1]), k=k, payloads=[
+                    {"x": rng.normal(size=4), "P": np.eye(4) * rng.uniform(1, 2)} for _ in range(rounds)])
         out.append((key, wire.encode(m)))
     return out
 

@@ -16,7 +16,7 @@ subscription). Exchange payloads go three ways, each predicted: ``per_host`` (wh
 i sends each sensor j of its own host that hears it by tick k's link table a copy on ``agent/i/to/j/xchg``,
 and every other host with hearers one copy on ``agent/i/via/<host>/xchg`` naming them), ``per_hearer`` (one
 copy per hearer wherever it is) and ``broadcast`` (every sensor subscribed to ``agent/*/xchg``: one copy to
-every other host); and one observer copy ``agent/i/xchg`` to the recorder's host.
+every other host); and one observer copy a tick ``agent/i/xchg`` (its rounds) to the recorder's host.
 
 Writes per directed host link and per host: predicted messages and payload bytes per tick (each way),
 measured bytes and frames per tick, the measured / predicted byte ratio (the wire's overhead over the msgpack
@@ -83,19 +83,22 @@ def predict(recording: Path, plan: RunPlan, k0: int, k1: int) -> dict:
         src = host_of(plan, topic)
         for dst in subscriber_hosts(plan, topic):   # observers' copies, and every other message
             add(SCHEMES if kind != "xchg" else ("per_host", "per_hearer"), src, dst, size)
-        if kind == "xchg":
+        if kind == "xchg":                         # the observers' copy of the tick: its rounds, each sent
             tick = ticks[msg.k]
             hearers = [j for j in range(tick.n) if j != msg.src and msg.src in tick.links[j]]
             where = {j: plan.node(f"agent/{j}").host for j in hearers}
-            for j in hearers:                      # one addressed copy per sensor that hears the sender
-                add(("per_hearer",), src, where[j], size)
             remote = [j for j in hearers if where[j] != src]
-            if remote:                             # one copy per other host with hearers, naming them all
-                via = len(wire.encode(wire.ViaXchg(src=msg.src, k=msg.k, r=msg.r, payload=msg.payload, to=remote)))
-                for dst in dict.fromkeys(where[j] for j in remote):
-                    add(("per_host",), src, dst, via)
-            for dst in HOSTS:                      # before addressing: to every host (sensors or recorder)
-                add(("broadcast",), src, dst, size)
+            for r, payload in enumerate(msg.payloads):
+                x = wire.Xchg(src=msg.src, k=msg.k, r=r, payload=payload)
+                one = len(wire.encode(x))
+                for j in hearers:                  # one addressed copy per sensor that hears the sender
+                    add(("per_hearer",), src, where[j], one)
+                if remote:                         # one copy per other host with hearers, naming them all
+                    via = len(wire.encode(wire.ViaXchg(src=x.src, k=x.k, r=r, payload=payload, to=remote)))
+                    for dst in dict.fromkeys(where[j] for j in remote):
+                        add(("per_host",), src, dst, via)
+                for dst in HOSTS:                  # before addressing: to every host (sensors or recorder)
+                    add(("broadcast",), src, dst, one)
     n = k1 - k0
     out = {kind: {lk: {"messages_per_tick": v["messages"] / n, "bytes_per_tick": v["bytes"] / n}
                   for lk, v in sorted(d.items())} for kind, d in links.items()}

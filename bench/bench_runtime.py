@@ -1,6 +1,6 @@
 """Benchmark: lockstep ticks/s and per-process memory over Zenoh for N = 10, 30, 60, 100 sensors, beside
 the same scenario on LocalBus and beside a bare Zenoh barrier (bench/zenoh_barrier.py) with the same
-message sizes, neighbour counts and addressing; exchange-round latency (median, p99) from the recording.
+message sizes, neighbour counts and addressing; a round's wall time (median, p99) from the sensors' tick rows.
 
 What explains the cost, per sensor per tick: CPU ms, voluntary context switches (≈ wake-ups of its
 threads, summed over /proc/<pid>/task/*), and the messages its bus received — exchange payloads
@@ -14,6 +14,7 @@ rounds × (degree + 1) that delivery proportional to degree must meet.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import subprocess
@@ -141,18 +142,15 @@ def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
         _summary, info = run_zenoh_to_dir(sc, data, Path(d), quiet=True, on_poll=hook, timeout_s=1800)
         rec = read_recording(Path(d) / "recording.mcap")
         bus = [json.loads((Path(d) / "stats" / f"agent-{i}.json").read_text()) for i in range(n)]
+        # a round's wall time, per sensor tick: from its beginning to its state sent, over its rounds
+        lat = []
+        for i in range(n):
+            with (Path(d) / "stats" / f"agent-{i}-ticks.csv").open() as f:
+                lat += [(float(r["total_ms"]) - float(r["start_ms"])) / int(r["rounds"])
+                        for r in csv.DictReader(f) if int(r["rounds"]) > 0]
     # when each message was recorded (the wall clock, ns; the log time is the simulated k·T)
     timed = [(key, m, t) for (key, m, _), t in zip(rec.messages, rec.wall)]
     t_tick = {m.k: t for key, m, t in timed if key == "world/tick"}
-    t_end = {}
-    for key, m, t in timed:
-        if key.endswith("/xchg"):
-            t_end[(m.k, m.r)] = max(t_end.get((m.k, m.r), 0), t)
-    lat = []
-    for (k, r), t in t_end.items():
-        prev = t_tick.get(k) if r == 0 else t_end.get((k, r - 1))
-        if prev is not None:
-            lat.append((t - prev) / 1e6)
     ks = sorted(t_tick)
     steady = (t_tick[ks[-1]] - t_tick[ks[0]]) / 1e9
     cpu = trace.between(t_tick[ks[0]] / 1e9, t_tick[ks[-1]] / 1e9)
@@ -173,7 +171,7 @@ def zenoh_run(n: int, ticks: int, rounds: int) -> dict:
                 "xchg_received": float(np.mean(xchg_in)), "xchg_received_max": float(np.max(xchg_in)),
                 "bound_rounds_x_degree_plus_1": rounds * (float(np.mean(degrees)) + 1),
                 "mean_degree": float(np.mean(degrees))},
-            "round_latency_ms": {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99))},
+            "round_ms": {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99))},
             "rss_mb": {"median": float(np.median(list(peak.values()))), "max": float(max(peak.values())),
                        "processes": len(peak)}}
 
@@ -266,7 +264,7 @@ def main() -> None:
         results["sizes"][str(n)] = r
         print(f"N={n}: zenoh {r['zenoh']['ticks_per_s']:.2f} ticks/s, barrier {r['barrier']['ticks_per_s']:.2f}, "
               f"ratio {r['zenoh_vs_barrier']:.2f}, LocalBus {r['localbus']['ticks_per_s']:.2f}, "
-              f"round latency median {r['zenoh']['round_latency_ms']['median']:.1f} ms, "
+              f"round median {r['zenoh']['round_ms']['median']:.1f} ms, "
               f"RSS median {r['zenoh']['rss_mb']['median']:.0f} MB; CPU/tick zenoh "
               f"{r['zenoh']['cpu_ms_per_tick']['total']:.1f} ms vs barrier {r['barrier']['cpu_ms_per_tick']['total']:.1f}"
               f" + LocalBus {1e3 / r['localbus']['ticks_per_s']:.1f} = {r['cpu_over_floor']:.2f} × the floor",

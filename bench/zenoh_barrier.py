@@ -4,8 +4,8 @@ A coordinator and N worker processes exchange messages of the runtime's sizes wi
 neighbour lists — tick → R exchange rounds with neighbours → state → next tick — with raw Zenoh and
 raw bytes: no msgpack, no validation, no estimation. What the runtime does on top of this is its cost.
 Addressed like the runtime: a worker puts each round's payload once per neighbour on
-``bar/x/<dst>/<src>`` (and once for observers, whom nobody plays here) and reads only its own inbox
-``bar/x/<id>/*``, so the comparison stays fair.
+``bar/x/<dst>/<src>`` and reads only its own inbox ``bar/x/<id>/*``; at the tick's end it puts the tick's
+payloads once for observers (whom nobody plays here), so the comparison stays fair.
 
     python bench/zenoh_barrier.py coordinator --n N --rounds R --ticks K --connect EP --nbrs FILE
     python bench/zenoh_barrier.py worker --id I ...
@@ -37,7 +37,8 @@ def worker(a) -> None:
     s.declare_subscriber("bar/tick", lambda smp: q.put(("tick", smp.payload.to_bytes())))
     s.declare_subscriber(f"bar/x/{a.id}/*", lambda smp: q.put((str(smp.key_expr), smp.payload.to_bytes())))
     pubs_x = [s.declare_publisher(f"bar/x/{j}/{a.id}", congestion_control=zenoh.CongestionControl.BLOCK)
-              for j in [*nbrs, "obs"]]
+              for j in nbrs]
+    pub_obs = s.declare_publisher(f"bar/obs/{a.id}", congestion_control=zenoh.CongestionControl.BLOCK)
     pub_s = s.declare_publisher(f"bar/s/{a.id}", congestion_control=zenoh.CongestionControl.BLOCK)
     tok = s.liveliness().declare_token(f"bar/alive/{a.id}")
     payload = bytes(a.xbytes)
@@ -62,6 +63,7 @@ def worker(a) -> None:
                 j, kk, rr = kind.rsplit("/", 1)[1], data[0] | data[1] << 8, data[2]
                 got.setdefault((kk, rr), set()).add(int(j))
             got.pop((k & 0xFFFF, r), None)
+        pub_obs.put(payload * a.rounds)
         pub_s.put(state)
     time.sleep(0.3)
     tok.undeclare()

@@ -732,7 +732,7 @@ class ReplayModel:
 # ============================================================================ synthetic input
 
 def synthetic_tick(n: int, k: int, *, T: float = 0.1, link_range: float = 12.0, spacing: float = 8.0,
-                   noise: float = 0.1, rounds: int = 3, seed: int = 0, alive: list[bool] | None = None,
+                   noise: float = 0.1, seed: int = 0, alive: list[bool] | None = None,
                    skip_estimates: tuple[int, ...] = ()) -> list[tuple[str, Message | None]]:
     """The messages of one tick of a made-up flock (tests, the benchmark): n sensors on a jittered grid
     following a target on a circle, range links, noisy estimates with covariances. Exchange payloads
@@ -760,7 +760,7 @@ def synthetic_tick(n: int, k: int, *, T: float = 0.1, link_range: float = 12.0, 
         if not alive[i]:
             continue
         out.append((f"agent/{i}/meas", None))
-        out.extend((f"agent/{i}/xchg", None) for _ in range(rounds))
+        out.append((f"agent/{i}/xchg", None))      # (the tick's rounds, once)
         if i not in skip_estimates:
             xi = x + rng.normal(0, noise, 4)
             out.append((f"agent/{i}/estimate", Estimate(src=i, k=k, x=xi, x_next=xi, P=P, name="Synthetic")))

@@ -2,8 +2,9 @@
 run placed on several hosts, one copy per host.
 
 Sensor i's payload of a round goes to every sensor j that hears it by the tick's link table
-(``tick.links[j]`` holds i) on j's own key ``agent/i/to/j/xchg``, and once to observers on ``agent/i/xchg``.
-A sensor that hears nobody this tick sends observers their copy only.
+(``tick.links[j]`` holds i) on j's own key ``agent/i/to/j/xchg``. The observers (recorder, dashboard) get the
+tick's payloads once, every round in one :class:`~agent.wire.Rounds` on ``agent/i/xchg``, when the tick ends
+(:meth:`ExchangeRoutes.send_observed`) — a sensor that hears nobody this tick sends them that only.
 
 On one host that is all. With a placement (``--hosts``: every sensor's host), Zenoh routes a put once to
 each router with a matching subscription, so three hearers on another host would cost three copies across
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import re
 
-from ..wire import HOST_NAME, Xchg, ViaXchg, host_inbox, inbox, via_key, xchg_key
+from ..wire import HOST_NAME, Rounds, Xchg, ViaXchg, host_inbox, inbox, via_key, xchg_key
 
 _SPAN = re.compile(rf"({HOST_NAME.pattern}):(\d+)(?:-(\d+))?")
 
@@ -29,9 +30,10 @@ class ExchangeRoutes:
         self.i = int(i)
         self.hosts = hosts
         self._observers = f"agent/{self.i}/xchg"             # the observers' copy, every tick
-        self.direct: list[str] = [self._observers]          # this tick's addressed keys, + observers'
+        self.direct: list[str] = []                          # this tick's addressed keys
         self.via: list[str] = []                             # this tick's per-host keys
         self.remote: list[int] = []                          # the hearers on other hosts (ViaXchg.to)
+        self.sent: list[dict] = []                           # this tick's payloads so far, by round
 
     @property
     def host(self) -> str | None:
@@ -50,15 +52,24 @@ class ExchangeRoutes:
         else:
             near = [j for j in hearers if self.hosts[j] == mine]
             far = [j for j in hearers if self.hosts[j] != mine]
-        self.direct = [xchg_key(self.i, j) for j in near] + [self._observers]
+        self.direct = [xchg_key(self.i, j) for j in near]
         self.remote = far
+        self.sent = []
         self.via = [via_key(self.i, h) for h in dict.fromkeys(self.hosts[j] for j in far)] if far else []
 
     def send(self, role, msg: Xchg) -> None:
-        """Publish ``msg`` on this tick's keys (``role.publish_to``: encoded once per kind of copy)."""
-        role.publish_to(self.direct, msg)
+        """Publish ``msg`` on this tick's keys (``role.publish_to``: encoded once per kind of copy), and keep
+        its payload for the observers."""
+        if self.direct:
+            role.publish_to(self.direct, msg)
         if self.via:
             role.publish_to(self.via, ViaXchg(src=msg.src, k=msg.k, r=msg.r, payload=msg.payload, to=self.remote))
+        self.sent.append(msg.payload)
+
+    def send_observed(self, role, k: int) -> None:
+        """The observers' copy of tick ``k``'s payloads, every round sent, in one message."""
+        role.publish(self._observers, Rounds(src=self.i, k=k, payloads=self.sent))
+        self.sent = []
 
     def for_me(self, msg: Xchg) -> bool:
         """Is a payload from this host's inbox addressed to this sensor? (A plain one from its own inbox is.)"""

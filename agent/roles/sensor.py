@@ -4,9 +4,9 @@ Per tick k, once it holds both the world's ``tick`` k and the target's ``truth``
 
 1. synthesises yᵢ = bᵢ C x + v with its own seeded noise and publishes ``meas``;
 2. runs the estimator's R exchange rounds: address ``xchg`` (k, r) to each sensor that hears it by the
-   tick's link table (``agent/i/to/j/xchg``, and once on ``agent/i/xchg`` for observers), collect the
-   current neighbours' (k, r) payloads from its own inbox until all arrived or the deadline passes (a
-   missing one is a dropped link);
+   tick's link table (``agent/i/to/j/xchg``), collect the current neighbours' (k, r) payloads from its own
+   inbox until all arrived or the deadline passes (a missing one is a dropped link); the observers get the
+   tick's payloads once, every round in one message on ``agent/i/xchg``;
 3. updates, publishes ``estimate`` (x̂ₖ used for scoring, x̂ₖ₊₁), applies its controller (flocking:
    Gu & Hu (20) with damping) and publishes ``state`` (position and velocity for tick k+1).
 
@@ -316,6 +316,7 @@ class SensorRole(Role):
         self.join.last = Estimate(src=self.i, k=self.k, x=self._prior, x_next=x_next.copy(),
                                   P=None if P is None else np.array(P, float), name=type(self.est).__name__, aux=aux)
         with self.timing.spent("publish"):
+            self.routes.send_observed(self, self.k)
             self.publish(f"agent/{self.i}/estimate", self.join.last)
         if self.controller is not None:
             with self.timing.spent("compute"):

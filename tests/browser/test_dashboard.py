@@ -169,7 +169,7 @@ def test_missing_estimates_and_bus_drops_count_as_dropped():
 def test_message_rate_from_the_clock():
     n = 4
     st = DashboardState(RunInfo(n=n))
-    ticks = synth(n, 30, rounds=3)
+    ticks = synth(n, 30)
     per_tick = len(ticks[0])
     feed(st, ticks, dt=0.1)
     s = st.series()
@@ -222,7 +222,7 @@ def test_memory_is_bounded_for_long_live_runs():
     n = 8
     st = DashboardState(RunInfo(n=n), keep_frames=50, max_points=100, trail_len=30)
     for k in range(1000):
-        for key, m in synthetic_tick(n, k, rounds=1):
+        for key, m in synthetic_tick(n, k):
             if m is not None:
                 st.ingest(key, m, k * 0.1)
     assert st.finalized_k == 999
@@ -517,14 +517,14 @@ def test_live_loop_counts_decodes_and_publishes_controls():
     loop = LiveDashboard(st, None, bus, clock=lambda: float(next(clock)))
     loop.attach()
     for k in range(6):
-        for key, m in synthetic_tick(n, k, rounds=2):
+        for key, m in synthetic_tick(n, k):
             bus.push(key, m)
     bus.queue.append(("agent/1/estimate", b"\xc1garbage"))   # invalid: dropped by the bus, counted here
     loop.send_control("link_drop", {"a": 0, "b": 1})
     loop.send_control("partition", {"groups": [0, 0, 1, 1, 1]})
     loop.step()
     assert st.finalized_k == 5
-    assert st.messages == 6 * len(synthetic_tick(n, 0, rounds=2))
+    assert st.messages == 6 * len(synthetic_tick(n, 0))
     assert st.bus_dropped == 1 and st.drop_meter.total == 1
     assert [k for k, _ in bus.published] == ["control/link_drop", "control/partition"]
     assert bus.published[0][1].args == {"a": 0, "b": 1}

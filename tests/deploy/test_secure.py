@@ -346,7 +346,7 @@ class Impostor:
         elif key.endswith("/xchg") and msg.src in (2, 4):
             j = 5 if msg.src == 2 else 4    # (as the sender, to the observers and to sensor 1's inbox)
             forged = dataclasses.replace(msg, src=j, payload={k: v + 1e3 for k, v in msg.payload.items()})
-            self._put(f"agent/{j}/xchg", forged)
+            self._put(f"agent/{j}/xchg", wire.Rounds(src=j, k=msg.k, payloads=[forged.payload]))
             self._put(f"agent/{j}/to/1/xchg", forged)
 
     def __call__(self, launcher) -> None:

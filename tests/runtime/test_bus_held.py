@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from agent.bus import ZenohBus
-from agent.wire import Xchg
+from agent.wire import Rounds, Xchg
 from flocktrack.launch.launcher import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -59,7 +59,7 @@ def test_a_payload_put_before_its_receiver_subscribed_arrives_in_order(router):
         sender.subscribe("world/tick", lambda key, msg: None)   # the sender's node loop polls its bus
         for r in range(3):
             sender.publish("agent/0/to/1/xchg", _xchg(r))
-        sender.publish("agent/0/xchg", _xchg(9))               # an observers' key is never held
+        sender.publish("agent/0/xchg", Rounds(src=0, payloads=[_xchg(9).payload]))   # an observers' key: never held
         assert sender.stats.held == 3 and sender.stats.sent == 1
         receiver.subscribe("agent/*/to/1/xchg", lambda key, msg: got.append(msg.r))
         _pump([sender, receiver], lambda: len(got) == 3)

@@ -66,17 +66,20 @@ def test_zenoh_lockstep_equals_inproc_and_recording_is_faithful(tmp_path, name, 
     addressed = Counter({k: v for k, v in sent.items() if wire.addressed(k)})
     assert dict(sent - addressed) == recorded and sum(sent.values()) > 0
     n = b["n_sensors"]
+    rounds = {}
     for i in range(n):     # where each sensor's ticks went: a row per tick in its stats
         with (tmp_path / "z" / "stats" / f"agent-{i}-ticks.csv").open() as f:
             rows = list(csv.DictReader(f))
+        rounds[i] = sum(int(r["rounds"]) for r in rows)
         assert [int(r["k"]) for r in rows] == list(range(ticks)), i
         assert all(int(r["deadline_rounds"]) == 0 and int(r["rounds"]) >= 1 for r in rows)   # lockstep
         t = {c: np.array([float(r[c]) for r in rows]) for c in ("compute_ms", "publish_ms", "wait_ms", "total_ms")}
         assert t["compute_ms"].sum() > 0 and t["publish_ms"].sum() > 0 and min(v.min() for v in t.values()) >= 0
         assert np.all(t["total_ms"] + 1e-3 >= t["compute_ms"] + t["publish_ms"] + t["wait_ms"])
-    for i in range(n):     # each payload went to this tick's neighbours only, never to everyone
-        to_nbrs = sum(v for k, v in addressed.items() if k.startswith(f"agent/{i}/to/"))
-        assert 0 < to_nbrs < (n - 1) * sent[f"agent/{i}/xchg"], (i, to_nbrs, sent[f"agent/{i}/xchg"])
+    for i in range(n):     # each payload went to this tick's neighbours only, never to everyone; the observers
+        to_nbrs = sum(v for k, v in addressed.items() if k.startswith(f"agent/{i}/to/"))   # got each tick once
+        assert sent[f"agent/{i}/xchg"] == ticks, (i, sent[f"agent/{i}/xchg"])
+        assert 0 < to_nbrs < (n - 1) * rounds[i], (i, to_nbrs, rounds[i])
     # ... and in publication order per key
     rec = read_recording(tmp_path / "z" / "recording.mcap")
     assert rec.complete and len(rec.messages) == sum(recorded.values())

@@ -1,5 +1,6 @@
 """agent/roles/routes.py: a sensor's exchange keys per tick — addressed to each hearer on its own host, one
-copy per other host with hearers (naming them), observers' copy always; and the ``--hosts`` map."""
+copy per other host with hearers (naming them), the observers' copy once a tick, every round in it; and the
+``--hosts`` map."""
 
 from __future__ import annotations
 
@@ -25,8 +26,7 @@ def test_one_host_addresses_every_hearer():
     r = ExchangeRoutes(0)
     r.route(LINKS)
     assert r.inboxes() == ["agent/*/to/0/xchg"]
-    assert r.direct == ["agent/0/to/1/xchg", "agent/0/to/3/xchg", "agent/0/to/4/xchg", "agent/0/to/5/xchg",
-                        "agent/0/xchg"]
+    assert r.direct == ["agent/0/to/1/xchg", "agent/0/to/3/xchg", "agent/0/to/4/xchg", "agent/0/to/5/xchg"]
     assert r.via == [] and r.remote == []
 
 
@@ -34,7 +34,7 @@ def test_placed_on_hosts_each_other_host_gets_one_copy_naming_its_hearers():
     r = ExchangeRoutes(0, HOSTS)
     r.route(LINKS)
     assert r.inboxes() == ["agent/*/to/0/xchg", "agent/*/via/a/xchg"]
-    assert r.direct == ["agent/0/to/1/xchg", "agent/0/xchg"]
+    assert r.direct == ["agent/0/to/1/xchg"]
     assert r.via == ["agent/0/via/b/xchg", "agent/0/via/c/xchg"] and r.remote == [3, 4, 5]
     # over a bus, every sensor subscribed to its inboxes: each hearer keeps one copy, a sensor of host b
     # that does not hear 0 gets b's copy and drops it, host a's other sensor and the observers' key see
@@ -59,8 +59,8 @@ def test_placed_on_hosts_each_other_host_gets_one_copy_naming_its_hearers():
     bus.subscribe("agent/*/xchg", lambda key, msg: observed.append(msg))
     r.send(sender, wire.Xchg(src=0, k=7, r=1, payload={"z": np.arange(3.0)}))
     bus.drain()
-    assert sorted(bus.stats.sent_by_key) == sorted([*r.direct, *r.via])
-    assert [type(m) for m in kept[1]] == [wire.Xchg] and [type(m) for m in observed] == [wire.Xchg]
+    assert sorted(bus.stats.sent_by_key) == sorted([*r.direct, *r.via]) and observed == []
+    assert [type(m) for m in kept[1]] == [wire.Xchg]
     for j in (3, 4, 5):
         assert [type(m) for m in kept[j]] == [wire.ViaXchg], j
         assert kept[j][0].to == [3, 4, 5] and (kept[j][0].k, kept[j][0].r) == (7, 1)
@@ -72,7 +72,28 @@ def test_placed_on_hosts_each_other_host_gets_one_copy_naming_its_hearers():
 def test_a_sensor_heard_by_nobody_sends_observers_only():
     r = ExchangeRoutes(2, HOSTS)
     r.route(LINKS)
-    assert r.direct == ["agent/2/xchg"] and r.via == []
+    assert r.direct == [] and r.via == []
+
+
+def test_the_observers_get_a_ticks_rounds_once_when_it_ends():
+    """Every round's payload, in the order sent, in one message on ``agent/<i>/xchg``; the next tick starts
+    afresh."""
+    bus = LocalBus()
+    sender = Sender(ticks=1)
+    sender.attach(bus)
+    observed: list = []
+    bus.subscribe("agent/*/xchg", lambda key, msg: observed.append((key, msg)))
+    r = ExchangeRoutes(0)
+    for k in (3, 4):
+        r.route(LINKS)
+        for rnd in range(3):
+            r.send(sender, wire.Xchg(src=0, k=k, r=rnd, payload={"z": np.full(2, 10.0 * k + rnd)}))
+        r.send_observed(sender, k)
+    bus.drain()
+    assert [(key, type(m), m.src, m.k) for key, m in observed] == [("agent/0/xchg", wire.Rounds, 0, 3),
+                                                                   ("agent/0/xchg", wire.Rounds, 0, 4)]
+    assert [p["z"].tolist() for p in observed[1][1].payloads] == [[40.0] * 2, [41.0] * 2, [42.0] * 2]
+    assert bus.stats.sent_by_key["agent/0/xchg"] == 2 and bus.stats.sent_by_key["agent/0/to/1/xchg"] == 6
 
 
 def test_hosts_map_round_trips_and_bad_maps_say_what_is_wrong():

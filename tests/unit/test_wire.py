@@ -21,8 +21,16 @@ def test_round_trip_is_bit_exact():
     t = wire.decode("world/tick", wire.encode(_tick()))
     assert t.links == [[1], [0, 2], [1]] and t.weights[1] == [1.0, 2.0] and t.positions.shape == (3, 2)
     x = wire.Xchg(src=1, k=3, r=2, payload={"chi1": np.eye(4), "chi2": np.ones(4)})
-    d = wire.decode("agent/1/xchg", wire.encode(x))
+    d = wire.decode("agent/1/to/2/xchg", wire.encode(x))
     assert set(d.payload) == {"chi1", "chi2"} and d.r == 2
+    v = np.array([0.1, 1 / 3, -2.5e-300])
+    rounds = wire.Rounds(src=1, k=3, payloads=[{"chi1": np.eye(4)}, {}, {"chi1": -np.eye(4), "chi2": v}])
+    d = wire.decode("agent/1/xchg", wire.encode(rounds))    # the observers' copy: the tick's rounds at once
+    assert [sorted(p) for p in d.payloads] == [["chi1"], [], ["chi1", "chi2"]]
+    assert d.payloads[2]["chi2"].tobytes() == v.tobytes() and np.array_equal(d.payloads[2]["chi1"], -np.eye(4))
+    rounds.payloads[1] = {"chi1": np.array([np.nan])}
+    with pytest.raises(wire.WireError, match="non_finite"):
+        wire.decode("agent/1/xchg", wire.encode(rounds))
 
 
 def _hostile_tick(**rows) -> bytes:
@@ -93,7 +101,7 @@ def test_non_finite_wrong_shape_and_impostor_are_rejected():
     d = wire.Xchg(src=0, k=0, r=0, payload={"a": np.zeros(2)}).to_wire()
     d["payload"]["a"]["d"] = b"\x00" * 7  # truncated array data
     with pytest.raises(wire.WireError, match="bad_shape"):
-        wire.decode("agent/0/xchg", msgpack.packb(d, use_bin_type=True))
+        wire.decode("agent/0/to/1/xchg", msgpack.packb(d, use_bin_type=True))
 
 
 def test_local_bus_drops_and_counts_bad_messages_without_reaching_handlers():
@@ -121,6 +129,7 @@ def _one_of_each():
     return [_tick(), wire.Truth(k=2, t=0.2, x=x), wire.Meas(src=1, k=2, t=0.2, y=x[:2], b=0.0, pos=x[2:]),
             wire.Meas(src=1, k=2, t=0.2, y=x[:2], pos=x[2:], v=x[:2] / 7),
             wire.Xchg(src=1, k=3, r=2, payload={"chi1": np.eye(2) / 3, "chi2": x}),
+            wire.Rounds(src=1, k=3, payloads=[{"chi1": np.eye(2) / 3}, {"chi1": np.eye(2), "chi2": x}]),
             wire.Estimate(src=2, k=7, x=x, x_next=x * 3, P=np.outer(x, x) * 1e-301, name="Kalman",
                           aux={"eps_1": x[:2]}),
             wire.Estimate(src=0, k=7, x=x, x_next=x), wire.State(src=4, k=1, pos=x[:2], vel=-x[2:]),
@@ -136,7 +145,7 @@ def test_fast_json_writes_what_to_json_says_and_reads_back_bit_exact():
         fast = m.to_json_bytes()
         assert json.loads(fast) == json.loads(json.dumps(m.to_json())), m.TYPE
         back = wire.from_json(json.loads(fast))
-        key = {"control": "control/fault", "xchg": "agent/1/xchg", "meas": "agent/1/meas", "state": "agent/4/state",
+        key = {"control": "control/fault", "xchg": "agent/1/to/2/xchg", "rounds": "agent/1/xchg", "meas": "agent/1/meas", "state": "agent/4/state",
                "estimate": f"agent/{m.src}/estimate", "tick": "world/tick", "truth": "target/truth", "end": "world/end"}
         assert wire.encode(back) == wire.encode(wire.decode(key[m.TYPE], wire.encode(m))), m.TYPE
     odd = wire.State(src=4, k=1, pos=np.arange(6.0).reshape(2, 3)[:, 1], vel=np.zeros(2))  # not contiguous
