@@ -57,7 +57,7 @@ import numpy as np
 import orjson
 
 from agent import wire_form as wf
-from agent.wire_form import MAX_ARRAY_ELEMENTS, MAX_LIST_LEN, MAX_MESSAGE_BYTES, MAX_PAYLOAD_ENTRIES  # noqa: F401
+from agent.wire_form import MAX_ARRAY_ELEMENTS, MAX_LIST_LEN, MAX_MESSAGE_BYTES
 
 
 class WireError(ValueError):
