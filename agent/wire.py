@@ -135,13 +135,7 @@ def _finite_list(v: list[float], name: str) -> list[float]:
     return v
 
 
-# --------------------------------------------------------------------------- field checks
-
-def _int(v: Any, name: str, lo: int = 0, hi: int = 2**53) -> int:
-    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
-        raise WireError("bad_field", f"{name} must be an int in [{lo}, {hi}], got {v!r}")
-    return v
-
+# --------------------------------------------------------------------------- control argument checks
 
 def _float(v: Any, name: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -149,12 +143,6 @@ def _float(v: Any, name: str) -> float:
     if not math.isfinite(v):
         raise WireError("non_finite", f"{name} is not finite")
     return float(v)
-
-
-def _str(v: Any, name: str, maxlen: int = 256) -> str:
-    if not isinstance(v, str) or len(v) > maxlen:
-        raise WireError("bad_field", f"{name} must be a string of at most {maxlen} chars")
-    return v
 
 
 def _list(v: Any, name: str, maxlen: int = MAX_LIST_LEN) -> list:
@@ -385,8 +373,8 @@ class ViaXchg(Xchg):
 @dataclass
 class Rounds(Message):
     """Sensor i's exchange payloads of tick k, every round (``payloads[r]``: what it sent in round r), once for
-    the observers when its tick ends — one message a tick where a copy a round would cost the router, the
-    recorder and a dashboard one sample each (of the ~8 a sensor's tick sends them, 5 were copies)."""
+    the observers when its tick ends: one sample a tick for the router, the recorder and a dashboard to carry,
+    where a copy a round would be R of them."""
 
     TYPE: ClassVar[str] = "rounds"
     FORM: ClassVar[type[wf.Form]] = wf.RoundsForm
