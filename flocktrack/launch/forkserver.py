@@ -34,11 +34,10 @@ import traceback
 from functools import cache
 from multiprocessing import reduction
 
-#: imported once by the server, before any fork (what every role's process imports at start: reading the
-#: scenario imports every estimator, and the distributed minimax filter's gate scipy.stats, ~0.35 s of CPU each)
+#: imported once by the server, before any fork (what every role's process imports at start; reading the
+#: scenario imports every estimator the registry finds: agent/estimators/preload.py)
 PRELOAD = ["numpy", "scipy.linalg", "msgpack", "zenoh", "agent.bus", "agent.wire", "agent.scenario", "agent.assemble",
-           "agent.runner", "agent.estimators.minimax", "agent.estimators.distributed_minimax",
-           "agent.estimators.hinf_switching", "agent.estimators.min_energy", "topology.world",
+           "agent.runner", "agent.estimators.minimax", "agent.estimators.preload", "topology.world",
            "flocktrack.record.recorder"]
 
 
