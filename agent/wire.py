@@ -330,15 +330,6 @@ class Xchg(Message):
     def _fields_from_form(cls, f: wf.XchgForm) -> dict:
         return dict(r=f.r, payload=_named(f.payload))
 
-    @classmethod
-    def from_form(cls, f: wf.XchgForm) -> Message:
-        try:
-            return super().from_form(f)
-        except WireError as exc:
-            if exc.reason in _UNUSABLE_ARRAY:
-                exc.header = UnusableXchg(src=f.src, k=f.k, r=f.r, reason=exc.reason)
-            raise
-
 
 #: an array's faults that leave the rest of an exchange payload readable (its header names the round it missed)
 _UNUSABLE_ARRAY = frozenset({"non_finite", "bad_shape", "bad_array", "too_large"})
@@ -863,9 +854,14 @@ def _refusal(cls: type[Message], exc: msgspec.ValidationError, claimed: Any, hea
             h = header()
         except msgspec.MsgspecError:
             h = None
-        if h is not None and h.type == cls.TYPE and owner in (None, h.src):
-            err.header = UnusableXchg(src=h.src, k=h.k, r=h.r, reason=label)
+        if h is not None and h.type == cls.TYPE:
+            err.header = _unusable(h, label, owner)
     return err
+
+
+def _unusable(h: wf.XchgHeader | wf.XchgForm, reason: str, owner: int | None) -> UnusableXchg | None:
+    """The header of an exchange payload whose arrays are unusable, or None when it lies about its sender."""
+    return UnusableXchg(src=h.src, k=h.k, r=h.r, reason=reason) if owner in (None, h.src) else None
 
 
 def _message(cls: type[Message], form: wf.Form, key: str, owner: int | None) -> Message:
@@ -875,8 +871,8 @@ def _message(cls: type[Message], form: wf.Form, key: str, owner: int | None) -> 
     try:
         msg = cls.from_form(form)
     except WireError as exc:
-        if exc.header is not None and owner is not None and exc.header.src != owner:
-            exc.header = None       # (a header that lies about its sender says nothing)
+        if isinstance(form, wf.XchgForm) and exc.reason in _UNUSABLE_ARRAY:
+            exc.header = _unusable(form, exc.reason, owner)
         raise
     except Exception as exc:  # any other surprise in hostile input is still a drop, never a crash
         raise WireError("bad_field", f"{type(exc).__name__}: {exc}") from None
