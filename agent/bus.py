@@ -12,6 +12,7 @@ Dropped messages are counted per reason in :attr:`BusStats.dropped`; they never 
 from __future__ import annotations
 
 import logging
+import queue
 import weakref
 from collections import Counter, deque
 from collections.abc import Callable
@@ -347,8 +348,10 @@ class ZenohBus:
         n = len(self.prefix)
         q = self._q
 
+        handlers = [handler]      # (deliver's list, made once, not per sample)
+
         def on_sample(sample) -> None:
-            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), handler))
+            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), handlers))
 
         self._decls.append(self.session.declare_subscriber(self.prefix + pattern, self._in_order(on_sample)))
 
@@ -372,8 +375,6 @@ class ZenohBus:
 
     def poll(self, timeout: float = 0.05, max_messages: int = 10_000) -> int:
         """Deliver queued messages on the caller's thread; wait up to ``timeout`` for the first."""
-        import queue
-
         n = 0
         try:
             item = self._q.get(timeout=timeout) if timeout > 0 else self._q.get_nowait()
@@ -381,8 +382,8 @@ class ZenohBus:
             return 0
         while item is not _WAKE:
             key, data, handler = item
-            if not isinstance(handler, tuple):
-                deliver(self.stats, [handler], key, data)
+            if type(handler) is list:
+                deliver(self.stats, handler, key, data)
             elif handler[0] == "matched":      # a held key's publisher matched (or lost) its subscriber
                 self._on_matching(key, data)
                 n -= 1

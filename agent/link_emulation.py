@@ -128,6 +128,9 @@ class LinkEmulator:
         """A payload (``msg.src``, ``msg.k`` …) heard on the link msg.src → i. Every copy that goes in now —
         a duplicate, a reordered predecessor, the payload itself — is handed to ``deliver``, in order.
         True: the payload is held for whole ticks, so its round need not wait for it."""
+        if not self.faults and self._slot is None:     # (no fault active: every payload, so kept short)
+            self.deliver(key, msg)
+            return False
         if self.faults and getattr(msg, "payload", None):
             self._heard = msg.payload     # (what a mimicking Byzantine sender replays)
         for f in [f for f in self.faults.values() if f.ev.kind in LINK_KINDS and f.on_link(self.i, msg.src)]:

@@ -77,7 +77,7 @@ class SensorRole(Role):
         self.join = Rejoin(self.i, rejoin, self.counters)   # a restart's way back, and the handover to others
         self.link = LinkEmulator(self.i, self.seed, self._accept_xchg, time.monotonic, noise_factor(sensor),
                                  counters=self.counters)
-        self.timing = TickTiming()     # where each tick's time went (the runner points it at stats/)
+        self.timing = TickTiming(stagger=self.i)     # where each tick's time went (the runner points it at stats/)
 
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)

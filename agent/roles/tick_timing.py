@@ -31,12 +31,15 @@ COLUMNS = ("k", "start_ms", "compute_ms", "publish_ms", "wait_ms", "receive_ms",
 
 
 class TickTiming:
-    """The timing rows of one sensor; ``path`` the CSV they go to (None: kept in memory, the last ``keep``)."""
+    """The timing rows of one sensor; ``path`` the CSV they go to (None: kept in memory, the last ``keep``).
+    ``stagger``: the first batch is that many rows (mod ``batch``) shorter, so that a flock's sensors, which
+    all begin at tick 0, write their files at different ticks instead of all in the same one."""
 
-    def __init__(self, path: str | Path | None = None, *, batch: int = 100, keep: int = 1000,
+    def __init__(self, path: str | Path | None = None, *, batch: int = 100, keep: int = 1000, stagger: int = 0,
                  clock=time.monotonic, cpu=time.process_time, thread_cpu=time.thread_time):
         self.path = None if path is None else Path(path)
         self.batch, self.keep = int(batch), int(keep)
+        self._due = self.batch - int(stagger) % self.batch    # rows held when the next batch is written
         self.clock, self.cpu, self.thread_cpu = clock, cpu, thread_cpu
         self.rows: list[tuple] = []
         self._written = False
@@ -70,7 +73,7 @@ class TickTiming:
                _ms(now - o["arrived"]),
                o["rounds"], o["deadline_rounds"])
         self.rows.append(row)
-        if self.path is not None and len(self.rows) >= self.batch:
+        if self.path is not None and len(self.rows) >= self._due:
             self.flush()
         elif self.path is None and len(self.rows) > 2 * self.keep:
             del self.rows[:-self.keep]
@@ -88,6 +91,7 @@ class TickTiming:
             w.writerows(self.rows)
         self._written = True
         self.rows = []
+        self._due = self.batch
 
 
 class _Spent:

@@ -46,3 +46,19 @@ def test_without_a_file_only_the_last_rows_are_kept():
         tt.begin(k, None)
         tt.end()
     assert 10 <= len(tt.rows) <= 20 and tt.rows[-1][0] == 99
+
+
+def test_a_flock_writes_its_files_at_different_ticks(tmp_path):
+    """Sensor i's first batch is i rows shorter: the sensors do not all write in the same tick."""
+    written_at = {}
+    for i in range(4):
+        tt = TickTiming(tmp_path / f"agent-{i}-ticks.csv", batch=10, stagger=i)
+        for k in range(25):
+            tt.begin(k, None)
+            tt.end()
+            if not tt.rows and i not in written_at:
+                written_at[i] = k
+        tt.flush()
+        rows = list(csv.DictReader((tmp_path / f"agent-{i}-ticks.csv").open()))
+        assert [int(r["k"]) for r in rows] == list(range(25))      # every row once, in order
+    assert written_at == {0: 9, 1: 8, 2: 7, 3: 6}
