@@ -80,3 +80,14 @@ def test_the_ellipse_is_two_sigma_along_the_principal_axes():
     assert (a, b) == pytest.approx((12.0, 2.0)) and math.tan(yaw) == pytest.approx(math.tan(0.5))
     assert ellipse_axes(np.array([[1.0, 0.0], [0.0, -1.0]])) is None
     assert ellipse_axes(np.array([[np.nan, 0.0], [0.0, 1.0]])) is None
+
+
+def test_the_ellipse_agrees_with_numpys_eigendecomposition():
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        A = rng.normal(size=(2, 2)) * rng.uniform(0.01, 100)
+        P = A @ A.T + 1e-6 * np.eye(2)
+        w, V = np.linalg.eigh(P)
+        a, b, yaw = ellipse_axes(P)
+        assert (a, b) == pytest.approx((4 * math.sqrt(w[1]), 4 * math.sqrt(w[0])), rel=1e-7, abs=1e-9)
+        assert abs(np.array([math.cos(yaw), math.sin(yaw)]) @ V[:, 1]) == pytest.approx(1.0)   # the major axis
