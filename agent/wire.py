@@ -49,6 +49,7 @@ from __future__ import annotations
 import functools
 import math
 import re
+from itertools import chain
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, ClassVar
 
@@ -80,20 +81,21 @@ def _enc_array(a: np.ndarray) -> dict:
 
 
 _SUM = np.add.reduce   # (ndarray.sum without numpy's Python wrappers: decoding is the hot path)
+_F8 = np.dtype("<f8")
 
 
 def _arrays(*arrs: wf.Arr | None, ndim: tuple[tuple[int, ...], ...] = ()) -> list[np.ndarray | None]:
     """The arrays of a message's decoded :class:`~agent.wire_form.Arr` (None stays None), after the checks
-    their form cannot make: dimensions (``ndim[i]``, default 1 or 2), size, data length, finite values. All
-    of a message's arrays are read as views of one buffer, in one pass (the hot path: every sensor decodes
-    every exchange payload of its neighbours; per array it would cost twice as much)."""
+    their form cannot make: dimensions (``ndim[i]``; the form allows 1 or 2), size, data length, finite
+    values. All of a message's arrays are read as views of one buffer, in one pass (the hot path: every
+    sensor decodes every exchange payload of its neighbours; per array it would cost twice as much)."""
     sizes = []
     for i, a in enumerate(arrs):
         if a is None:
-            sizes.append(0)
+            sizes.append(-1)
             continue
         shape = a.s
-        if len(shape) not in (ndim[i] if i < len(ndim) else (1, 2)):
+        if ndim and len(shape) not in ndim[i]:
             raise WireError("bad_shape", f"shape {shape!r}")
         size = shape[0] if len(shape) == 1 else shape[0] * shape[1]
         if size > MAX_ARRAY_ELEMENTS:
@@ -101,7 +103,7 @@ def _arrays(*arrs: wf.Arr | None, ndim: tuple[tuple[int, ...], ...] = ()) -> lis
         if len(a.d) != 8 * size:
             raise WireError("bad_shape", f"{len(a.d)} bytes for shape {shape}")
         sizes.append(size)
-    flat = np.frombuffer(bytearray().join([a.d for a in arrs if a is not None]), dtype="<f8")
+    flat = np.frombuffer(bytearray().join([a.d for a in arrs if a is not None]), dtype=_F8)
     # a finite sum proves every element finite (NaN/inf propagate); only a non-finite sum (which an
     # overflow of huge finite values can also give) needs the element-wise test
     if not math.isfinite(_SUM(flat)) and not np.isfinite(flat).all():
@@ -109,12 +111,11 @@ def _arrays(*arrs: wf.Arr | None, ndim: tuple[tuple[int, ...], ...] = ()) -> lis
     out: list[np.ndarray | None] = []
     o = 0
     for a, size in zip(arrs, sizes):
-        if a is None:
+        if size < 0:
             out.append(None)
-            continue
-        v = flat[o:o + size]
-        out.append(v if len(a.s) == 1 else v.reshape(a.s))
-        o += size
+        else:
+            out.append(flat[o:o + size] if len(a.s) == 1 else flat[o:o + size].reshape(a.s))
+            o += size
     return out
 
 
@@ -270,15 +271,15 @@ def _neighbours(links: list[list[int]], weights: list[list[float]]) -> None:
     lens = list(map(len, links))
     if lens != list(map(len, weights)):
         raise WireError("bad_field", "links[i] must be aligned with weights[i]")
-    flat = [j for li in links for j in li]
-    if flat and max(flat) >= n:
+    col = np.array(list(chain.from_iterable(links)), dtype=np.int64)
+    if col.size and col.max() >= n:
         raise WireError("bad_field", f"links[i][j] must be in [0, {n - 1}]")
-    col = np.array(flat, dtype=np.int64)
     row = np.repeat(np.arange(n), lens)
     if (col == row).any() or ((row[1:] == row[:-1]) & (col[1:] <= col[:-1])).any():
         bad = next(i for i, li in enumerate(links) if i in li or li != sorted(set(li)))
         raise WireError("bad_field", f"links[{bad}] must be sorted, unique, without self, aligned with weights")
-    _finite_list([w for wi in weights for w in wi], "weights[i][j]")
+    if not math.isfinite(sum(chain.from_iterable(weights))):     # (as for arrays: the sum first)
+        _finite_list([w for wi in weights for w in wi], "weights[i][j]")
 
 
 @dataclass

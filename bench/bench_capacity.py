@@ -47,12 +47,14 @@ def size_data(n: int, hz: float, minutes: float, pace: str = "adaptive") -> dict
     return data
 
 
-def run_size(n: int, hz: float, minutes: float, pace: str = "adaptive") -> dict:
+def run_size(n: int, hz: float, minutes: float, pace: str = "adaptive", keep: Path | None = None) -> dict:
+    """One run of ``n`` sensors; ``keep``: a directory the run's own output is kept in (its tick rows, logs and
+    recording explain a missed deadline), a new ``<n>-<i>`` under it per run."""
     data = size_data(n, hz, minutes, pace)
     sc = parse_scenario(data, f"demo.toml (sensors.n = {n})")
     print(f"[capacity] {n} sensors, {sc.run.ticks} ticks at {hz:g} Hz ({minutes:g} min)", flush=True)
     with tempfile.TemporaryDirectory(prefix=f"capacity{n}_") as d:
-        out = Path(d)
+        out = Path(d) if keep is None else _fresh(keep, n)
         t0 = time.monotonic()
         with GapMonitor() as gaps:      # the machine's own stops, beside the run (bench/machine_gaps.py)
             summary, info = run_zenoh_to_dir(sc, data, out, quiet=True, timeout_s=minutes * 60 * 3 + 300)
@@ -89,6 +91,13 @@ def run_size(n: int, hz: float, minutes: float, pace: str = "adaptive") -> dict:
     return row
 
 
+def _fresh(keep: Path, n: int) -> Path:
+    i = 0
+    while (keep / f"{n}-{i}").exists():
+        i += 1
+    return keep / f"{n}-{i}"
+
+
 def _gaps_summary(g: dict | None) -> dict | None:
     """bench/machine_gaps.py's result, its list of gaps cut to the 50 longest (ms)."""
     if g is None:
@@ -110,12 +119,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pace", choices=["adaptive", "fixed"], default="adaptive",
                     help="the realtime clock (run.pace): adaptive yields under overload (the default), fixed never")
     ap.add_argument("--stop-at-first-miss", action="store_true")
+    ap.add_argument("--keep", type=Path, help="keep each run's output (tick rows, logs, recording) under this "
+                                              "directory, as <sensors>-<i>")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "capacity.json")
     a = ap.parse_args(argv)
     res = {"date": time.strftime("%Y-%m-%d"), "hz": a.hz, "minutes": a.minutes, "repeats": a.repeats, "pace": a.pace,
            "machine": {"cpus": os.cpu_count()}, "sizes": []}
     for n in a.sizes:
-        runs = [run_size(n, a.hz, a.minutes, a.pace) for _ in range(a.repeats)]
+        runs = [run_size(n, a.hz, a.minutes, a.pace, a.keep) for _ in range(a.repeats)]
         res["sizes"].append(size_verdict(n, runs))
         _write(a.out, res)
         if a.stop_at_first_miss and not res["sizes"][-1]["holds"]:
@@ -124,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     res["largest_holding"] = max(s["sensors"] for s in held) if held else None
     if a.overload and held:
         base = max(held, key=lambda s: s["sensors"])
-        over = run_size(2 * base["sensors"], a.hz, a.minutes, a.pace)
+        over = run_size(2 * base["sensors"], a.hz, a.minutes, a.pace, a.keep)
         rmse = base["network_rmse_median"]
         res["overload"] = {"sensors": over["sensors"], "of_holding": base["sensors"], "run": over,
                            "rmse_ratio": over["network_rmse"] / rmse if rmse else None,
