@@ -199,6 +199,22 @@ def plot(res: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+PHASE_ORDER = ("demo", "faults", "flock30")
+
+
+def _earlier_phases(out: Path, rerun: list[str]) -> list[dict]:
+    """The phases of ``out`` that this run does not repeat, each with its own date: rerunning one phase keeps
+    the others' results instead of dropping them."""
+    try:
+        old = json.loads(out.read_text())
+    except (OSError, ValueError):
+        return []
+    kept = [p for p in old.get("phases", []) if isinstance(p, dict) and p.get("phase") not in rerun]
+    for p in kept:
+        p.setdefault("date", old.get("date"))
+    return kept
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0)
@@ -207,11 +223,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "soak.json")
     ap.add_argument("--plot", type=Path)
     a = ap.parse_args(argv)
-    res: dict = {"date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count(), "minutes": a.minutes, "phases": []}
+    res: dict = {"date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count(), "minutes": a.minutes,
+                 "phases": _earlier_phases(a.out, a.phases.split(","))}
     for name in a.phases.split(","):
         with tempfile.TemporaryDirectory(prefix=f"soak_{name}_") as d:
             ph = run_phase(name, a.minutes, a.flock_period, Path(d))
+        ph["date"] = time.strftime("%Y-%m-%d")
         res["phases"].append(ph)
+        res["phases"].sort(key=lambda p: PHASE_ORDER.index(p["phase"]) if p["phase"] in PHASE_ORDER else 99)
         print(f"[soak {name}] rc {ph['rc']}: {ph['ticks']} ticks in {ph['wall_s']} s, missed deadlines "
               f"{ph['missed_deadlines_per_1000_ticks']}/1000 ticks, late payloads {ph['late_payloads_per_1000_ticks']}"
               f"/1000 ticks, worst RSS growth {ph['rss_growth_worst']:+.1%}, recording "

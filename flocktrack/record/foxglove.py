@@ -86,18 +86,21 @@ class FoxgloveViews:
     # ------------------------------------------------------------------ per message
     def of(self, key: str, msg: wire.Message, t_ns: int) -> list[tuple[str, object, int]]:
         k = msg.k
-        self._count[k] += 1
+        open_tick = k > self._done          # (what comes for a tick whose views are written is not kept)
+        if open_tick:
+            self._count[k] += 1
         if isinstance(msg, (wire.Tick, wire.Truth)) or (isinstance(msg, wire.Estimate) and key.startswith("agent/")):
             self.metrics.ingest(key, msg)      # (what a tick's row needs)
         out: list[tuple[str, object, int]] = []
         if isinstance(msg, wire.Tick):
-            self._t_ns[k] = t_ns
+            if open_tick:
+                self._t_ns[k] = t_ns
             if not self._framed:
                 self._framed = True
                 out.append(("/tf", self._frames(t_ns), t_ns))
             out += self._tick(msg, t_ns)
             out += self._close(k - LAG_TICKS)
-        elif isinstance(msg, wire.Estimate) and key.startswith("agent/"):
+        elif isinstance(msg, wire.Estimate) and key.startswith("agent/") and open_tick:
             self._pending[k][msg.src] = msg
         elif isinstance(msg, wire.Control):
             out.append(("/log", self._log(key, msg, t_ns), t_ns))
@@ -160,11 +163,12 @@ class FoxgloveViews:
         """The views of every tick up to ``upto`` not written yet: estimates, target, metrics."""
         out: list[tuple[str, object, int]] = []
         for k in range(self._done + 1, upto + 1):
-            t_ns = self._t_ns.get(k)
+            t_ns = self._t_ns.pop(k, None)
             if t_ns is None:      # a tick this recording never saw (a cut, a shard)
                 self._pending.pop(k, None)
-                continue
-            out += self._tick_over(k, t_ns)
+            else:
+                out += self._tick_over(k, t_ns)
+            self._count.pop(k, None)        # (nothing by tick outlives its views: a long run's memory stays flat)
         self._done = max(self._done, upto)
         self.metrics.forget(self._done)
         return out

@@ -91,3 +91,17 @@ def test_the_ellipse_agrees_with_numpys_eigendecomposition():
         a, b, yaw = ellipse_axes(P)
         assert (a, b) == pytest.approx((4 * math.sqrt(w[1]), 4 * math.sqrt(w[0])), rel=1e-7, abs=1e-9)
         assert abs(np.array([math.cos(yaw), math.sin(yaw)]) @ V[:, 1]) == pytest.approx(1.0)   # the major axis
+
+
+def test_a_long_run_keeps_only_the_ticks_still_open(views):
+    """What the views keep by tick is let go once the tick's views are written — and a message that comes
+    after that (late) is not kept again: the recorder's memory does not grow with the run."""
+    v, sc = views
+    T = round(sc.run.T * 1e9)
+    for k in range(300):
+        v.of("world/tick", _tick(sc, k), k * T)
+        v.of("target/truth", wire.Truth(k=k, t=k * sc.run.T, x=np.array([1.0, 2.0, 0.0, 0.0])), k * T)
+        v.of("agent/0/estimate", wire.Estimate(src=0, k=k, x=np.zeros(4), x_next=np.zeros(4)), k * T)
+        if k >= 10:   # an estimate of a tick whose views are written long ago
+            v.of("agent/1/estimate", wire.Estimate(src=1, k=k - 10, x=np.zeros(4), x_next=np.zeros(4)), k * T)
+    assert len(v._t_ns) <= LAG_TICKS + 1 and len(v._count) <= LAG_TICKS + 1 and len(v._pending) <= LAG_TICKS + 1
