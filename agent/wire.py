@@ -49,8 +49,8 @@ from __future__ import annotations
 import functools
 import math
 import re
-from itertools import chain
 from dataclasses import asdict, dataclass, field, fields
+from itertools import chain
 from typing import Any, ClassVar
 
 import msgspec
