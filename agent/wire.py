@@ -278,8 +278,7 @@ def _neighbours(links: list[list[int]], weights: list[list[float]]) -> None:
     if (col == row).any() or ((row[1:] == row[:-1]) & (col[1:] <= col[:-1])).any():
         bad = next(i for i, li in enumerate(links) if i in li or li != sorted(set(li)))
         raise WireError("bad_field", f"links[{bad}] must be sorted, unique, without self, aligned with weights")
-    if not math.isfinite(sum(chain.from_iterable(weights))):     # (as for arrays: the sum first)
-        _finite_list([w for wi in weights for w in wi], "weights[i][j]")
+    _finite_list(list(chain.from_iterable(weights)), "weights[i][j]")
 
 
 @dataclass

@@ -37,8 +37,7 @@ from multiprocessing import reduction
 #: imported once by the server, before any fork (what every role's process imports at start; reading the
 #: scenario imports every estimator the registry finds: agent/estimators/preload.py)
 PRELOAD = ["numpy", "scipy.linalg", "msgpack", "zenoh", "agent.bus", "agent.wire", "agent.scenario", "agent.assemble",
-           "agent.runner", "agent.estimators.minimax", "agent.estimators.preload", "topology.world",
-           "flocktrack.record.recorder"]
+           "agent.runner", "agent.estimators.preload", "topology.world", "flocktrack.record.recorder"]
 
 
 def die_with_parent() -> None:
