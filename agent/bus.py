@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import time
 import weakref
 from collections import Counter, deque
 from collections.abc import Callable
@@ -20,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from . import wire
+from .inbox import Inbox
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +73,7 @@ class Bus(Protocol):
 
     def publish_raw(self, key: str, data: bytes) -> None: ...
 
-    def subscribe(self, pattern: str, handler: Handler) -> None: ...
+    def subscribe(self, pattern: str, handler: Handler, *, bulk: bool = False) -> None: ...
 
     def close(self) -> None: ...
 
@@ -131,7 +133,8 @@ class LocalBus:
         self.stats.sent_by_key[key] += 1
         self._queue.append((key, data))
 
-    def subscribe(self, pattern: str, handler: Handler) -> None:
+    def subscribe(self, pattern: str, handler: Handler, *, bulk: bool = False) -> None:
+        """``handler(key, msg)`` for every message on ``pattern`` (``bulk``: a hint for :class:`ZenohBus`)."""
         self._subs.append((pattern, handler))
         self._routes.clear()
 
@@ -218,6 +221,7 @@ def wake_all() -> None:
     poll); ``SimpleQueue.put`` is reentrant, safe in a signal handler."""
     for bus in list(_LIVE):
         bus._q.put(_WAKE)
+        bus._rouse()
 
 
 class ZenohBus:
@@ -226,7 +230,9 @@ class ZenohBus:
     Zenoh delivers samples on its own threads; the callbacks only enqueue ``(key, bytes, handler)``.
     The role's thread calls :meth:`poll`, which decodes and validates each message through the same
     :func:`deliver` as :class:`LocalBus` — so roles never run concurrently with themselves and a bad
-    message is dropped and counted exactly as in-process.
+    message is dropped and counted exactly as in-process. A role's bulk input (``subscribe(…, bulk=True)``:
+    a sensor's inbox) skips the callback: its samples stay in a Zenoh channel until :meth:`poll` takes them
+    (:mod:`agent.inbox`).
 
     Membership: :meth:`declare_token` makes this process visible under ``ft/<run>/alive/<name>``;
     :meth:`watch_members` reports tokens appearing and disappearing (a killed process's token
@@ -252,6 +258,8 @@ class ZenohBus:
         self._decls: list = []
         self._writes: tuple[str, ...] | None = None   # the declared writes (restrict_writes), None: unchecked
         self._undeclared: set[str] = set()
+        self._inbox: Inbox | None = None          # the bulk subscription (agent/inbox.py)
+        self._inbox_to: list | tuple = []          # its handlers (or ("raw", callback))
         self._closed = False
         _LIVE.add(self)
 
@@ -303,8 +311,11 @@ class ZenohBus:
         self._matched[key] = False
         q = self._q
 
+        rouse = self._rouse
+
         def on_status(status) -> None:
             q.put((key, bool(status.matching), ("matched", None)))
+            rouse()
 
         self._decls.append(pub.declare_matching_listener(self._in_order(on_status)))
 
@@ -335,8 +346,6 @@ class ZenohBus:
     def await_subscriber(self, key: str, timeout_s: float) -> bool:
         """Wait until someone subscribes to what we would put on ``key`` (a put before the routes reach
         us is dropped at the publisher); False after ``timeout_s`` without one."""
-        import time
-
         pub, end = self._publisher(key), time.monotonic() + timeout_s
         while not pub.matching_status.matching:
             if time.monotonic() > end:
@@ -344,26 +353,38 @@ class ZenohBus:
             time.sleep(0.02)
         return True
 
-    def subscribe(self, pattern: str, handler: Handler) -> None:
-        n = len(self.prefix)
-        q = self._q
+    def subscribe(self, pattern: str, handler: Handler, *, bulk: bool = False) -> None:
+        """``handler(key, msg)`` on the role's thread (:meth:`poll`) for every valid message on ``pattern``.
+        ``bulk``: this subscription carries most of what the role receives (a sensor's inbox) — its samples
+        stay in Zenoh until :meth:`poll` takes them, no Python on Zenoh's thread (:mod:`agent.inbox`). One per
+        bus, on a pattern with a wildcard chunk; any other is an ordinary subscription."""
+        self._subscribe(pattern, [handler], bulk)     # (deliver's list, made once, not per sample)
 
-        handlers = [handler]      # (deliver's list, made once, not per sample)
-
-        def on_sample(sample) -> None:
-            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), handlers))
-
-        self._decls.append(self.session.declare_subscriber(self.prefix + pattern, self._in_order(on_sample)))
-
-    def subscribe_raw(self, pattern: str, callback: Callable[[str, bytes], None]) -> None:
+    def subscribe_raw(self, pattern: str, callback: Callable[[str, bytes], None], *, bulk: bool = False) -> None:
         """Undecoded samples (recorder), delivered through :meth:`poll` like the others."""
+        self._subscribe(pattern, ("raw", callback), bulk)
+
+    def _subscribe(self, pattern: str, target: list | tuple, bulk: bool) -> None:
+        if bulk and self._inbox is None and "*" in pattern:
+            self._inbox = Inbox(self.session, self._zenoh, self.prefix, pattern)
+            self._inbox_to = target
+            return
         n = len(self.prefix)
         q = self._q
+        rouse = self._rouse
 
         def on_sample(sample) -> None:
-            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), ("raw", callback)))
+            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), target))
+            rouse()
 
         self._decls.append(self.session.declare_subscriber(self.prefix + pattern, self._in_order(on_sample)))
+
+    def _rouse(self) -> None:
+        """Something was queued: ring the inbox's doorbell if the role's thread waits in the inbox."""
+        inbox = self._inbox
+        if inbox is not None and inbox.blocked:
+            inbox.blocked = False      # (once: the samples queued after this one are seen with it)
+            inbox.ring()
 
     def _in_order(self, callback):
         """``callback`` run on Zenoh's receiving thread (``indirect=False``): zenoh-python's default runs
@@ -374,12 +395,51 @@ class ZenohBus:
         return self._zenoh.handlers.Callback(callback, indirect=False)
 
     def poll(self, timeout: float = 0.05, max_messages: int = 10_000) -> int:
-        """Deliver queued messages on the caller's thread; wait up to ``timeout`` for the first."""
+        """Deliver queued messages on the caller's thread; wait up to ``timeout`` for the first. Returns how
+        many were delivered (0: the timeout passed, or :func:`wake_all` woke it)."""
+        inbox = self._inbox
+        if inbox is None:
+            return self._poll_queue(timeout, max_messages)[0]
+        end = 0.0
+        while True:
+            n, woken = self._poll_queue(0.0, max_messages)
+            if woken or n >= max_messages:
+                return n
+            while n < max_messages:
+                got = inbox.take()
+                if got is None:
+                    break
+                n += self._take_inbox(got, inbox.wake)
+            if n or timeout <= 0:
+                return n
+            now = time.monotonic()
+            end = end or now + timeout
+            if now >= end:
+                return 0
+            inbox.blocked = True          # before the last look at the queue: a sample queued after it rings
+            if not self._q.empty():
+                inbox.blocked = False
+                continue
+            n = self._take_inbox(inbox.wait(end), inbox.wake)
+            if n:                         # (and whatever came with it)
+                return n if n >= max_messages else n + self.poll(0.0, max_messages - n)
+
+    def _take_inbox(self, got: tuple[str, bytes], wake: str) -> int:
+        """Deliver one sample of the inbox (1), or skip a doorbell (0)."""
+        key, data = got
+        if key == wake and not data:      # (a put with bytes on it is a sender's: decoded, dropped, counted)
+            return 0
+        self._dispatch(key, data, self._inbox_to)
+        return 1
+
+    def _poll_queue(self, timeout: float, max_messages: int) -> tuple[int, bool]:
+        """Deliver what the callbacks queued; wait up to ``timeout`` for the first. (count, woken by
+        :func:`wake_all`)."""
         n = 0
         try:
             item = self._q.get(timeout=timeout) if timeout > 0 else self._q.get_nowait()
         except queue.Empty:
-            return 0
+            return 0, False
         while item is not _WAKE:
             key, data, handler = item
             if type(handler) is list:
@@ -388,19 +448,26 @@ class ZenohBus:
                 self._on_matching(key, data)
                 n -= 1
             else:
-                try:
-                    handler[1](key, data)
-                except Exception:
-                    self.stats.handler_errors += 1
-                    log.exception("%s callback failed on %s", handler[0], key)
+                self._dispatch(key, data, handler)
             n += 1
             if n >= max_messages:
-                return n
+                return n, False
             try:
                 item = self._q.get_nowait()
             except queue.Empty:
-                return n
-        return n
+                return n, False
+        return n, True
+
+    def _dispatch(self, key: str, data: bytes, target: list | tuple) -> None:
+        """One sample to its subscription's handlers (decoded) or callback (``("raw" | "member", cb)``)."""
+        if type(target) is list:
+            deliver(self.stats, target, key, data)
+            return
+        try:
+            target[1](key, data)
+        except Exception:
+            self.stats.handler_errors += 1
+            log.exception("%s callback failed on %s", target[0], key)
 
     # ------------------------------------------------------------------ membership
     def declare_token(self, name: str):
@@ -415,9 +482,12 @@ class ZenohBus:
         q = self._q
         z = self._zenoh
 
+        rouse = self._rouse
+
         def on_token(sample) -> None:
             alive = sample.kind == z.SampleKind.PUT
             q.put((str(sample.key_expr)[n:], alive, ("member", callback)))
+            rouse()
 
         self._decls.append(self.session.liveliness().declare_subscriber(self.prefix + "alive/**", self._in_order(on_token),
                                                                         history=True))
@@ -426,6 +496,8 @@ class ZenohBus:
         if self._closed:
             return
         self._closed = True
+        if self._inbox is not None:
+            self._inbox.close()
         for d in reversed(self._decls):
             try:
                 d.undeclare()

@@ -82,8 +82,8 @@ class SensorRole(Role):
     def subscribe(self, bus: Bus) -> None:
         bus.subscribe("world/tick", self._on_tick)
         bus.subscribe("target/truth", self._on_truth)
-        for key in self.routes.inboxes():
-            bus.subscribe(key, self._on_xchg)
+        for key in self.routes.inboxes():       # (most of what a sensor receives: kept in Zenoh till polled)
+            bus.subscribe(key, self._on_xchg, bulk=True)
         if self.join.restarted:
             bus.subscribe(estimate_inbox(self.i), self._on_peer_estimate)
         bus.subscribe("control/outlier_burst", self._on_outlier_burst)
