@@ -129,7 +129,7 @@ class WorldRole(Role):
         self.last_tick: Tick | None = None
 
     def subscribe(self, bus: Bus) -> None:
-        bus.subscribe("agent/*/state", self._on_state)
+        bus.subscribe("agent/*/state", self._on_state, bulk=True)    # (n a tick: kept in Zenoh till polled)
         bus.subscribe("target/state", self._on_target_state)
         bus.subscribe("control/**", self._on_control)
         bus.subscribe("launcher/event", self._on_launcher_event)
