@@ -183,7 +183,7 @@ def test_tests_are_grouped_by_layer():
 
 
 #: the runtime and its plumbing: thin signatures (the numerical core keeps the papers' matrix arguments)
-PLUMBING = ["flocktrack", "dashboards", "topology", "agent/roles", "agent/runner.py", "agent/bus.py",
+PLUMBING = ["flocktrack", "dashboards", "topology", "agent/roles", "agent/runner.py", "agent/bus.py", "agent/inbox.py",
             "agent/link_emulation.py"]
 
 
