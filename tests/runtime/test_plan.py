@@ -56,7 +56,7 @@ def test_every_role_subscribes_to_what_it_declares_and_no_more():
             bus = LocalBus()
             seen: list[str] = []
             sub = bus.subscribe
-            bus.subscribe = lambda pattern, handler, _s=sub, _seen=seen: (_seen.append(pattern), _s(pattern, handler))
+            bus.subscribe = lambda pattern, handler, _s=sub, _seen=seen, **kw: (_seen.append(pattern), _s(pattern, handler, **kw))
             role.attach(bus)
             reads = role.ports().reads
             assert seen and all(p in reads for p in seen), (name, type(role).__name__, seen, reads)
