@@ -1,8 +1,8 @@
 """A realtime run the machine cannot keep degrades and recovers, it does not collapse: the README's main job
 over Zenoh with CPU burners starving the machine for 2 s in the middle. With ``run.pace = "adaptive"`` the world
-stretches its clock while the flock cannot keep it (topology/pace.py) and is back at the nominal pace once the load is gone; every
-round a sensor missed is counted, the estimates after the burst are as good as before it, and the recording
-lost nothing. Counts and errors are checked, not timing."""
+stretches its clock while the flock cannot keep it (topology/pace.py) and is back at the nominal pace once the
+load is gone (the ticks' own periods say so); every round a sensor missed is counted, the estimates after the
+burst are as good as before it, and the recording lost nothing. Counts and errors are checked, not timing."""
 
 from __future__ import annotations
 
@@ -66,9 +66,19 @@ def test_a_starved_realtime_run_slows_its_clock_counts_its_misses_and_recovers(t
     assert hook.started_at is not None
     stats = {p.stem: json.loads(p.read_text()) for p in (tmp_path / "stats").glob("*.json")}
     world = stats["world-0"]["role"]
-    # the clock yielded while the machine was starved, and not for the whole run
-    assert 0 < world.get("pace_stretched_ticks", 0) < ticks // 2, world
-    assert info["pace"] == {"stretched_ticks": world["pace_stretched_ticks"], "max_stretch": world["pace_max_stretch"]}
+    assert info["pace"] == {"stretched_ticks": world.get("pace_stretched_ticks", 0),
+                            "max_stretch": world.get("pace_max_stretch", 1.0)}
+    rec = read_recording(tmp_path / "recording.mcap")
+    # the clock yielded while the machine was starved, and came back after it: judged from the ticks' own
+    # periods, not from how many were stretched (a slower machine of the same kind stretches now and then
+    # without a burst too — the main job at full speed is at its edge)
+    nominal = sc.run.T / sc.run.speed
+    period = {m.k: m.period for key, m, _ in rec.messages if key == "world/tick"}
+    per_s = int(round(sc.run.speed / sc.run.T))
+    burst = [period[k] for k in range(hook.started_at, hook.started_at + 3 * per_s) if k in period]
+    end = [period[k] for k in range(ticks - ticks // 5, ticks) if k in period]
+    assert max(burst) > 1.2 * nominal, (nominal, burst)
+    assert np.median(end) < 1.01 * nominal, (nominal, end)
     # every round a sensor closed by its deadline is in its counters, its log and its tick rows, and in the
     # launcher's count (which has the target's waits too)
     counted = 0
@@ -80,13 +90,11 @@ def test_a_starved_realtime_run_slows_its_clock_counts_its_misses_and_recovers(t
         counted += n
     assert counted <= info["missed_deadlines"]
     # the recording lost nothing: every message a process sent on a recorded key is in it
-    rec = read_recording(tmp_path / "recording.mcap")
     assert rec.complete and info["unrecorded_messages"] == {}, info["unrecorded_messages"]
     assert len(rec.messages) > 20 * ticks
     # recovery: the network's error after the burst (from 1 s of ticks after it) as before it, every sensor
     # estimating again
     err = {int(r["k"]): float(r["rmse"]) for r in csv.DictReader(open(tmp_path / "metrics.csv"))}
-    per_s = int(round(sc.run.speed / sc.run.T))
     after = hook.started_at + 3 * per_s
     before = [err[k] for k in range(sc.run.burn_in, k_burst) if k in err]
     late = [err[k] for k in range(after, ticks) if k in err]
