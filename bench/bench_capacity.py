@@ -23,7 +23,6 @@ import argparse
 import csv
 import json
 import os
-import re
 import sys
 import tempfile
 import time
@@ -34,7 +33,8 @@ sys.path.insert(0, str(ROOT))
 
 from agent.scenario import parse_scenario, scenario_data  # noqa: E402 - after the sys.path insert above
 from flocktrack.engine.run import run_zenoh_to_dir  # noqa: E402 - same
-from machine_gaps import GapMonitor  # noqa: E402 - bench/ is this script's directory
+from machine_gaps import (  # noqa: E402 - bench/ is this script's directory
+    GapMonitor, by_speed, missed_by_tick, speed_summary, tick_walls)
 
 
 def size_data(n: int, hz: float, minutes: float, pace: str = "adaptive") -> dict:
@@ -59,8 +59,9 @@ def run_size(n: int, hz: float, minutes: float, pace: str = "adaptive", keep: Pa
         with GapMonitor() as gaps:      # the machine's own stops, beside the run (bench/machine_gaps.py)
             summary, info = run_zenoh_to_dir(sc, data, out, quiet=True, timeout_s=minutes * 60 * 3 + 300)
         wall = time.monotonic() - t0
-        missed_ticks = sorted({int(k) for f in (out / "logs").glob("*.log")
-                               for k in re.findall(r"deadline on \((\d+), \d+\)", f.read_text(errors="replace"))})
+        missed_by = missed_by_tick(out / "logs")
+        missed_ticks = sorted(missed_by)
+        walls = tick_walls(out / "recording.mcap")
         late = sum(int(json.loads(f.read_text()).get("role", {}).get("late_payloads", 0))
                    for f in (out / "stats").glob("agent-*.json"))
         cpu = [float(r["cpu_ms"]) for f in (out / "stats").glob("agent-*-ticks.csv")
@@ -80,14 +81,16 @@ def run_size(n: int, hz: float, minutes: float, pace: str = "adaptive", keep: Pa
            "pace": {k: v for k, v in world.get("role", {}).items() if k.startswith("pace_")},
            # the ticks with a missed deadline; and the moments the machine stopped a 1 ms sleeper > 20 ms
            "ticks_with_misses": missed_ticks[:200], "machine_gaps": _gaps_summary(gaps.result()),
+           # the machine's speed beside the run, and the ticks and misses in its slow phases and the rest
+           "machine_speed": speed_summary(gaps.result()), "missed_by_speed": by_speed(gaps.result(), walls, missed_by),
            # (and the world never stretched its clock: topology/pace.py)
            "holds": missed == 0 and info.get("rc") == 0 and not any(world.get("role", {}).get(k, 0) for k in (
                "late_states", "missing_states", "pace_stretched_ticks"))}
     g = row["machine_gaps"] or {}
     print(f"[capacity] {n} sensors: {row['ticks_per_s']:.2f} ticks/s, missed deadlines {missed} in "
           f"{len(missed_ticks)} ticks, late payloads {late}, RMSE {row['network_rmse']:.3g}, machine stopped "
-          f"> 20 ms {g.get('count', '?')}× (longest {g.get('max_ms', '?')} ms) — "
-          f"{'holds' if row['holds'] else 'does not hold'}", flush=True)
+          f"> 20 ms {g.get('count', '?')}× (longest {g.get('max_ms', '?')} ms), missed by its speed "
+          f"{row['missed_by_speed']} — {'holds' if row['holds'] else 'does not hold'}", flush=True)
     return row
 
 

@@ -39,9 +39,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from agent.scenario import parse_scenario, scenario_data  # noqa: E402 - after the sys.path insert above
 from flocktrack.engine.run import run_zenoh_to_dir  # noqa: E402 - after the sys.path insert above
+from machine_gaps import (  # noqa: E402 - bench/ is this script's directory
+    GapMonitor, by_speed, missed_by_tick, speed_summary, tick_walls)
 
 PAGE = os.sysconf("SC_PAGE_SIZE")
 SAMPLE_S = 5.0
@@ -117,8 +120,16 @@ def run_phase(name: str, minutes: float, flock_period: float, work: Path) -> dic
 
     print(f"[soak {name}] {sc.sensors.n} sensors, {sc.run.ticks} ticks of T = {sc.run.T} s at speed {sc.run.speed} "
           f"(~{minutes:g} min)", flush=True)
-    summary, info = run_zenoh_to_dir(sc, data, work, quiet=True, on_poll=on_poll, timeout_s=minutes * 60 * 3 + 300)
-    return analyse(name, sc, summary, info, samples, work)
+    with GapMonitor() as gaps:      # the machine's stops and speed beside the run (bench/machine_gaps.py)
+        summary, info = run_zenoh_to_dir(sc, data, work, quiet=True, on_poll=on_poll,
+                                         timeout_s=minutes * 60 * 3 + 300)
+    res = analyse(name, sc, summary, info, samples, work)
+    g = gaps.result()
+    res["machine_speed"] = speed_summary(g)
+    res["missed_by_speed"] = by_speed(g, tick_walls(work / "recording.mcap"), missed_by_tick(work / "logs"))
+    print(f"[soak {name}] the machine's speed {res['machine_speed']}; ticks and missed deadlines in its slow "
+          f"phases and the rest: {res['missed_by_speed']}", flush=True)
+    return res
 
 
 def growth(series: list[tuple[float, int, int]]) -> dict:
