@@ -220,8 +220,7 @@ def wake_all() -> None:
     until an item arrives (seen: a dashboard that got SIGTERM after the run's last message never left its
     poll); ``SimpleQueue.put`` is reentrant, safe in a signal handler."""
     for bus in list(_LIVE):
-        bus._q.put(_WAKE)
-        bus._rouse()
+        bus._enqueue(_WAKE)
 
 
 class ZenohBus:
@@ -309,13 +308,10 @@ class ZenohBus:
 
     def _watch_matching(self, key: str, pub) -> None:
         self._matched[key] = False
-        q = self._q
-
-        rouse = self._rouse
+        enqueue = self._enqueue
 
         def on_status(status) -> None:
-            q.put((key, bool(status.matching), ("matched", None)))
-            rouse()
+            enqueue((key, bool(status.matching), ("matched", None)))
 
         self._decls.append(pub.declare_matching_listener(self._in_order(on_status)))
 
@@ -370,17 +366,17 @@ class ZenohBus:
             self._inbox_to = target
             return
         n = len(self.prefix)
-        q = self._q
-        rouse = self._rouse
+        enqueue = self._enqueue
 
         def on_sample(sample) -> None:
-            q.put((str(sample.key_expr)[n:], sample.payload.to_bytes(), target))
-            rouse()
+            enqueue((str(sample.key_expr)[n:], sample.payload.to_bytes(), target))
 
         self._decls.append(self.session.declare_subscriber(self.prefix + pattern, self._in_order(on_sample)))
 
-    def _rouse(self) -> None:
-        """Something was queued: ring the inbox's doorbell if the role's thread waits in the inbox."""
+    def _enqueue(self, item: tuple) -> None:
+        """Queue ``item`` for :meth:`poll` (from Zenoh's thread, or a signal handler: ``SimpleQueue.put`` is
+        reentrant) and wake the role's thread if it waits in the inbox."""
+        self._q.put(item)
         inbox = self._inbox
         if inbox is not None and inbox.blocked:
             inbox.blocked = False      # (once: the samples queued after this one are seen with it)
@@ -479,15 +475,11 @@ class ZenohBus:
         """``callback(name, alive)`` for every token under ``alive/**`` (present ones first),
         delivered through :meth:`poll` on the role's thread."""
         n = len(self.prefix + "alive/")
-        q = self._q
         z = self._zenoh
-
-        rouse = self._rouse
+        enqueue = self._enqueue
 
         def on_token(sample) -> None:
-            alive = sample.kind == z.SampleKind.PUT
-            q.put((str(sample.key_expr)[n:], alive, ("member", callback)))
-            rouse()
+            enqueue((str(sample.key_expr)[n:], sample.kind == z.SampleKind.PUT, ("member", callback)))
 
         self._decls.append(self.session.liveliness().declare_subscriber(self.prefix + "alive/**", self._in_order(on_token),
                                                                         history=True))

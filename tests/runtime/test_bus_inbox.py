@@ -74,6 +74,20 @@ def test_a_sample_of_another_subscription_wakes_a_poll_waiting_in_the_inbox(pair
     assert time.monotonic() - t0 < 15.0
 
 
+def test_the_deadline_of_a_poll_a_sample_ended_rings_nothing(pair):
+    """A poll that a payload ends before its timeout leaves its deadline armed: when that deadline comes, the
+    role's thread is not waiting, and no doorbell is put into the inbox for its next poll to skip."""
+    sender, receiver, got = pair
+    threading.Timer(0.05, lambda: sender.publish("agent/0/to/1/xchg", _xchg(0))).start()
+    t0 = time.monotonic()
+    assert receiver.poll(1.0) == 1 and len(got) == 1
+    time.sleep(max(0.0, t0 + 1.5 - time.monotonic()))  # past the first poll's deadline, the thread not waiting
+    assert receiver._inbox.take() is None         # nothing rang: no doorbell in the channel
+    t0 = time.monotonic()                         # and a poll after it still waits out its own timeout
+    assert receiver.poll(0.3) == 0
+    assert time.monotonic() - t0 >= 0.3
+
+
 def test_wake_all_wakes_a_poll_waiting_in_the_inbox(pair):
     _, receiver, _ = pair
     threading.Timer(0.3, wake_all).start()
