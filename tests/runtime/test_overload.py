@@ -1,5 +1,7 @@
 """A realtime run the machine cannot keep degrades and recovers, it does not collapse: the README's main job
-over Zenoh with CPU burners starving the machine for 2 s in the middle. With ``run.pace = "adaptive"`` the world
+with half its sensors (6; at 12 the main job at full speed is at the edge of the 2-core VMs it is tested on, and
+in their slow phases past it — its clock stretched now and then without a burst, and kept stretched to the end
+in one run beside another suite) over Zenoh with CPU burners starving the machine for 2 s in the middle. With ``run.pace = "adaptive"`` the world
 stretches its clock while the flock cannot keep it (topology/pace.py) and is back at the nominal pace once the
 load is gone (the ticks' own periods say so); every round a sensor missed is counted, the estimates after the
 burst are as good as before it, and the recording lost nothing. Counts and errors are checked, not timing."""
@@ -55,7 +57,7 @@ class StarveAt:
 def test_a_starved_realtime_run_slows_its_clock_counts_its_misses_and_recovers(tmp_path):
     ticks, k_burst = 300, 80
     data = scenario_data(str(ROOT / "scenarios" / "demo.toml"), [],
-                         **{"run.ticks": ticks, "run.mode": "realtime", "run.pace": "adaptive"})
+                         **{"run.ticks": ticks, "run.mode": "realtime", "run.pace": "adaptive", "sensors.n": 6})
     sc = parse_scenario(data, "demo.toml")
     hook = StarveAt(k_burst, 2.0)
     try:
@@ -68,8 +70,8 @@ def test_a_starved_realtime_run_slows_its_clock_counts_its_misses_and_recovers(t
     world = stats["world-0"]["role"]
     rec = read_recording(tmp_path / "recording.mcap")
     # the clock yielded while the machine was starved, and came back after it: judged from the ticks' own
-    # periods, not from how many were stretched (a slower machine of the same kind stretches now and then
-    # without a burst too — the main job at full speed is at its edge)
+    # periods, not from how many were stretched (measured there without a burst: 6 sensors 0 stretched ticks,
+    # 12 sensors 14; with it, 6 sensors: 1.8 × the period at most, back at nominal within 2 s)
     nominal = sc.run.T / sc.run.speed
     period = {m.k: m.period for key, m, _ in rec.messages if key == "world/tick"}
     per_s = int(round(sc.run.speed / sc.run.T))
