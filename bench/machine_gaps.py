@@ -92,8 +92,8 @@ def by_speed(res: dict | None, tick_wall: dict[int, float], missed: dict[int, in
     ``missed``: tick → missed round deadlines."""
     import bisect
 
-    s = summary = speed_summary(res)
-    if summary is None or not tick_wall:
+    s = speed_summary(res)
+    if s is None or not tick_wall:
         return None
     samples = res["speed"]
     ts = [x[0] for x in samples]

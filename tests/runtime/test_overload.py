@@ -1,10 +1,11 @@
 """A realtime run the machine cannot keep degrades and recovers, it does not collapse: the README's main job
 with half its sensors (6; at 12 the main job at full speed is at the edge of the 2-core VMs it is tested on, and
 in their slow phases past it — its clock stretched now and then without a burst, and kept stretched to the end
-in one run beside another suite) over Zenoh with CPU burners starving the machine for 2 s in the middle. With ``run.pace = "adaptive"`` the world
-stretches its clock while the flock cannot keep it (topology/pace.py) and is back at the nominal pace once the
-load is gone (the ticks' own periods say so); every round a sensor missed is counted, the estimates after the
-burst are as good as before it, and the recording lost nothing. Counts and errors are checked, not timing."""
+in one run beside another suite) over Zenoh with CPU burners starving the machine for 2 s in the middle. With
+``run.pace = "adaptive"`` the world stretches its clock while the flock cannot keep it (topology/pace.py) and is
+back at the nominal pace once the load is gone (the ticks' own periods say so); every round a sensor missed is
+counted, the estimates after the burst are as good as before it, and the recording lost nothing. Counts and
+errors are checked, not timing."""
 
 from __future__ import annotations
 
