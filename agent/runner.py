@@ -134,6 +134,10 @@ class WaitBudget:
       (:meth:`Role.step_anchor`: for a sensor, when the world's tick reached it). A role that begins a step
       late — descheduled, or still waiting out the last one — gets what is left of the step's window, not a
       whole new schedule, so one late tick does not make the next one late too.
+    - ``final``: the step's last sub-step (a sensor's round R − 1). Nothing of the step comes after it but
+      the tail the window keeps, so it waits until the window's end, not only its slot's: the time between
+      the two (the part of the tail the role's late start did not take) would otherwise go unused while a
+      neighbour's last payload is a few ms away.
     - ``warmup_s``: the budget of every wait of step 0, the run's first tick, in which routes and
       publishers are still being set up (the realtime world closes tick 0 on its states, not its clock).
     """
@@ -144,6 +148,7 @@ class WaitBudget:
     warmup_s: float | None = None
     window_s: float | None = None
     period_s: float | None = None   #: realtime: the period the budget was made for (see :meth:`scaled`)
+    final: int | None = None        #: the last sub-step of a step: due at the window's end
 
     #: a step's announced period is taken within this factor of the nominal one (a hostile tick cannot make a
     #: sensor wait for hours or not at all)
@@ -178,7 +183,8 @@ class WaitBudget:
             return began + self.slot_s
         due = step_began + (key[1] + 1 + self.head) * self.slot_s
         if self.window_s is not None and anchor is not None:
-            due = min(due, anchor + self.window_s)
+            end = anchor + self.window_s
+            due = end if self.final is not None and key[1] >= self.final else min(due, end)
         return due
 
 

@@ -6,6 +6,7 @@ warm-up tick 0 waits long."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -34,6 +35,12 @@ def test_a_scheduled_round_inherits_the_time_an_earlier_round_left_unused():
     assert w.due((5, 0), 100.0, 100.0, anchor=99.95) == pytest.approx(100.02)     # round 0 fits in the window
     assert w.due((5, 2), 100.03, 100.0, anchor=99.95) == pytest.approx(100.03)    # round 2 is cut to it
     assert w.due((5, 2), 100.03, 100.0) == pytest.approx(100.04)                  # no anchor: no window
+    # the last round (final) waits until the window's end, whatever its slot; the rounds before it keep theirs
+    f = WaitBudget(0.01, schedule=True, head=1, window_s=0.08, final=2)
+    assert f.due((5, 1), 100.0, 100.0, anchor=99.99) == pytest.approx(100.03)
+    assert f.due((5, 2), 100.0, 100.0, anchor=99.99) == pytest.approx(100.07)    # its slot: 100.04
+    assert f.due((5, 2), 100.0, 100.0) == pytest.approx(100.04)                  # no anchor: its slot
+    assert f.scaled(None).final == 2 and replace(f, period_s=1.0).scaled(2.0).final == 2
     # every wait of tick 0 gets the warm-up budget, scheduled or not
     assert WaitBudget(0.01, schedule=True, head=1, warmup_s=0.5).due((0, 2), 7.0, 1.0) == pytest.approx(7.5)
 
@@ -50,8 +57,11 @@ def test_realtime_budgets_fit_the_sensors_rounds_and_the_targets_wait_into_one_p
         assert last_round < target < period                # the estimates in, then the target moves
         assert period - target == pytest.approx(tail / 2)  # and its state has half the tail to reach the world
         assert s.due((0, 0), 0.0, 0.0) == t.due((0, 0), 0.0, 0.0) == pytest.approx(2 * period)
-        # a sensor that began the tick 0.3 periods after it came: its last round ends where the target stops waiting
+        # the last round ends where the target stops waiting — for a sensor that began the tick as it came, and
+        # for one that began it 0.3 periods later; the rounds before it end on their slots
+        assert s.due((3, R - 1), 0.0, 0.0, anchor=0.0) == pytest.approx(target)
         assert s.due((3, R - 1), 0.3 * period, 0.3 * period, anchor=0.0) == pytest.approx(target)
+        assert s.due((3, R - 2), 0.0, 0.0, anchor=0.0) == pytest.approx(R * (period - tail) / (R + 1))
     lock = role_budget(sc, "lockstep", "sensor")
     assert not lock.schedule and lock.slot_s == sc.run.deadline_s and lock.warmup_s is None
     # an outer wait outlasts the ones inside it: the target's outlasts a sensor's whole tick, the world's the target's
@@ -72,7 +82,8 @@ def test_a_stretched_tick_gives_every_round_and_the_targets_wait_its_share_of_th
         s2, t2 = s.scaled(p), t.scaled(p)
         for r in range(R):
             assert s2.due((3, r), 0.0, 0.0) == pytest.approx(factor * s.due((3, r), 0.0, 0.0))
-        assert s2.due((3, R - 1), 0.0, 0.0, anchor=0.0) < t2.due((3, 0), 0.0, 0.0) < p
+        assert s2.due((3, R - 1), 0.0, 0.0, anchor=0.0) == pytest.approx(t2.due((3, 0), 0.0, 0.0))
+        assert s2.due((3, R - 2), 0.0, 0.0, anchor=0.0) < t2.due((3, 0), 0.0, 0.0) < p
         assert s2.due((0, 0), 0.0, 0.0) == s.due((0, 0), 0.0, 0.0)          # the warm-up as it was
     assert s.scaled(None) is s and s.scaled(0.0) is s and s.scaled(-1.0) is s   # no period announced: nominal
     # a hostile tick's period is bounded: a sensor neither waits for ever nor not at all
