@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -53,12 +54,31 @@ def build(spec: str, keep: list[Path]) -> Path:
     return d
 
 
+def drop(tree: Path) -> None:
+    """Remove a worktree :func:`build` made (and its temporary directory)."""
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+    shutil.rmtree(tree.parent, ignore_errors=True)
+
+
 def env_of(tree: Path, extra: list[str]) -> dict[str, str]:
     env = dict(os.environ, PYTHONPATH=str(tree))
     for kv in extra:
         k, _, v = kv.partition("=")
         env[k] = v
     return env
+
+
+def ratios(ca: dict[str, float], cb: dict[str, float]) -> dict[str, float]:
+    """B's CPU per tick over A's, per role both measured (a role A spent nothing on is left out)."""
+    return {k: cb[k] / ca[k] for k in ca if k in cb and ca[k] > 0}
+
+
+def summarize(pairs: list[dict]) -> dict[str, dict[str, float]]:
+    """Median, min and max of B/A over the pairs, per role every pair has."""
+    roles = sorted(set.intersection(*(set(p["b_over_a"]) for p in pairs)))
+    return {k: {"median": statistics.median(p["b_over_a"][k] for p in pairs),
+                "min": min(p["b_over_a"][k] for p in pairs), "max": max(p["b_over_a"][k] for p in pairs)}
+            for k in roles}
 
 
 def one_pair(trees: dict[str, Path], envs: dict[str, dict], order: list[str], a) -> dict[str, dict]:
@@ -99,14 +119,11 @@ def main() -> None:
         for i in range(a.pairs):
             r = one_pair(trees, envs, ["a", "b"] if i % 2 == 0 else ["b", "a"], a)
             ca, cb = r["a"]["cpu_ms_per_tick"], r["b"]["cpu_ms_per_tick"]
-            ratio = {k: cb[k] / ca[k] for k in ca if k in cb and ca[k] > 0}
+            ratio = ratios(ca, cb)
             pairs.append({"a": r["a"], "b": r["b"], "b_over_a": ratio})
             print(f"pair {i + 1}/{a.pairs}: CPU/tick A {ca['total']:.1f} ms, B {cb['total']:.1f} ms, B/A "
                   + ", ".join(f"{k} {v:.3f}" for k, v in ratio.items()), flush=True)
-        roles = sorted(set.intersection(*(set(p["b_over_a"]) for p in pairs)))
-        summary = {k: {"median": statistics.median(p["b_over_a"][k] for p in pairs),
-                       "min": min(p["b_over_a"][k] for p in pairs), "max": max(p["b_over_a"][k] for p in pairs)}
-                   for k in roles}
+        summary = summarize(pairs)
         res = {"a": a.a, "b": a.b, "env_a": a.env_a, "env_b": a.env_b, "n": a.n, "ticks": a.ticks,
                "rounds": a.rounds, "date": time.strftime("%Y-%m-%d %H:%M"),
                "machine": {"cpus": os.cpu_count(), "loadavg_at_start": list(os.getloadavg())},
@@ -117,7 +134,7 @@ def main() -> None:
                                                    for k, v in summary.items()))
     finally:
         for d in keep:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(d)], check=False)
+            drop(d)
 
 
 if __name__ == "__main__":
