@@ -23,6 +23,24 @@ def scenario_path():
     return lambda name: SCENARIOS / name
 
 
+@pytest.fixture(scope="session")
+def bench_module():
+    """``bench_module("bench_ab")``: a script of bench/ imported as a module (bench/ is not a package), once."""
+    import importlib.util
+
+    loaded = {}
+
+    def load(name: str):
+        if name not in loaded:
+            spec = importlib.util.spec_from_file_location(name, ROOT / "bench" / f"{name}.py")
+            mod = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(mod)
+            loaded[name] = mod
+        return loaded[name]
+
+    return load
+
+
 _EXIT = {"status": 0}
 
 

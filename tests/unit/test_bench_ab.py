@@ -3,7 +3,6 @@ repository and its processes import it, not this checkout; the ratios and their 
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -14,11 +13,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def ab():
-    spec = importlib.util.spec_from_file_location("bench_ab", ROOT / "bench" / "bench_ab.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def ab(bench_module):
+    return bench_module("bench_ab")
 
 
 def test_ratios_and_their_summary_per_role(ab):

@@ -3,7 +3,6 @@ between the machine's slow phases and the rest — what tells a miss the machine
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -13,11 +12,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def gaps():
-    spec = importlib.util.spec_from_file_location("machine_gaps", ROOT / "bench" / "machine_gaps.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def gaps(bench_module):
+    return bench_module("machine_gaps")
 
 
 def _result(samples):
