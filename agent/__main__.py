@@ -39,9 +39,9 @@ def role_budget(sc, mode: str, role: str, *, depth: int = 0) -> WaitBudget:
     its slot's (the main job on a 2-core VM over capacity, 8 alternated pairs of 500-tick runs: 1060 round
     deadlines missed against 1645, the last round's 603 against 1226; the target's missed waits 613 against 602
     and the states late at the world 2141 against 2167, unchanged); an intelligent target waits for the
-    estimates until half the tail is left. Every wait of the warm-up tick 0 gets two periods. A tick that announces another
-    period (``Tick.period``: the world stretched under overload, topology/pace.py, or the run's speed changed)
-    gets the same schedule in proportion (:meth:`agent.runner.WaitBudget.scaled`)."""
+    estimates until half the tail is left. Every wait of the warm-up tick 0 gets two periods. A tick that
+    announces another period (``Tick.period``: the world stretched under overload, topology/pace.py, or the
+    run's speed changed) gets the same schedule in proportion (:meth:`agent.runner.WaitBudget.scaled`)."""
     if mode == "lockstep":
         return WaitBudget.lockstep(sc.run.deadline_s, rounds=sc.estimator.rounds, depth=depth)
     period = sc.run.T / sc.run.speed

@@ -4,11 +4,8 @@ between the machine's slow phases and the rest — what tells a miss the machine
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
