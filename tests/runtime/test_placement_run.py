@@ -65,13 +65,21 @@ def test_two_hosts_on_loopback_merge_into_the_one_host_run(tmp_path):
 
 def test_a_host_that_never_comes_up_is_named_and_the_run_gives_up(tmp_path):
     placement = _placement(tmp_path / "hosts.toml")
+    (tmp_path / "other").mkdir()
+    other = _placement(tmp_path / "other" / "hosts.toml")   # a second run, on ports of its own: its host b alone
     t0 = time.monotonic()
     p = _run("a", placement, tmp_path, "--ticks", "20", "--startup-timeout", "12")
-    out = p.communicate(timeout=120)[0]
-    assert p.returncode != 0 and time.monotonic() - t0 < 60, out
+    q = _run("b", other, tmp_path / "other", "--ticks", "20", "--startup-timeout", "12")
+    out, out_b = p.communicate(timeout=120)[0], q.communicate(timeout=120)[0]
+    assert p.returncode != 0 and q.returncode != 0 and time.monotonic() - t0 < 60, (out, out_b)
     assert "waiting 5 s for host b: launcher/b, recorder/b, agent/5" in out, out
     assert "did not start within 12 s; still waiting for host b:" in out and "launcher/b" in out, out
-    assert "Traceback" not in out
+    # and whether the network is to blame: neither router has a link to the other's (b dials a)
+    assert "; router links: b down (b dials this router)" in out, out
+    a_port = next(line.split("=")[1].strip() for line in other.read_text().splitlines() if line.startswith("port"))
+    assert "waiting 5 s for host a: " in out_b, out_b
+    assert f"; router links: a down (dialling tcp/127.0.0.1:{a_port})" in out_b, out_b
+    assert "Traceback" not in out + out_b
 
 
 def test_a_bad_placement_or_host_is_one_line(tmp_path):
