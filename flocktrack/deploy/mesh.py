@@ -116,6 +116,24 @@ def host_router_config(plan, host: str) -> dict:
                               peer_endpoints=[h.endpoint for h in hosts[:i]])
 
 
+def router_links(plan, host: str, linked: set[str]) -> str:
+    """Which other hosts' routers host ``host``'s router has a link to, given the ids of the routers it is
+    linked with (``linked``; the others' ids are fixed, :func:`mesh_router_id`): e.g. ``router links: a down
+    (dialling tcp/10.0.0.1:7447), c up`` — said by a placed run that waits for another host. One whose link
+    is up is waited for because of its processes; one whose link is down, because of the network, its
+    address, or its router not running."""
+    hosts = list(plan.hosts)
+    me = next(i for i, h in enumerate(hosts) if h.name == host)
+    parts = []
+    for i, h in enumerate(hosts):
+        if i == me:
+            continue
+        up = mesh_router_id(h.name, h.address) in linked
+        how = "" if up else (f" (dialling {h.endpoint})" if i < me else f" ({h.name} dials this router)")
+        parts.append(f"{h.name} {'up' if up else 'down'}{how}")
+    return "router links: " + ", ".join(parts)
+
+
 def host_router_configs(plan, out: str | Path) -> dict[str, Path]:
     """:func:`host_router_config` of every host of ``plan``, written to ``out/router-<host>.json5``."""
     out = Path(out)

@@ -113,6 +113,20 @@ def publish_process(bus, k: int, what: str, name: str, kw: dict) -> None:
         log.debug("process event %s %s not published: %s", what, name, exc)
 
 
+def startup_line(waited_s: float, missing: dict[str, list[str]], links: str = "",
+                 gave_up_after_s: float | None = None) -> str:
+    """What a run that has not begun says every few seconds — the hosts and nodes it waits for, and ``links``
+    (a placed run's router links, :func:`flocktrack.deploy.mesh.router_links`) — or, once it gives up after
+    ``gave_up_after_s``, its error line."""
+    if gave_up_after_s is None:
+        text = f"waiting {waited_s:.0f} s for " + "; ".join(
+            f"host {h}: {', '.join(ns[:5])}{' …' if len(ns) > 5 else ''}" for h, ns in missing.items())
+    else:
+        where = "; ".join(f"host {h}: {', '.join(ns)}" for h, ns in missing.items()) or "the first tick"
+        text = f"error: the run did not start within {gave_up_after_s:.0f} s; still waiting for {where}"
+    return text + (f"; {links}" if links else "")
+
+
 class Launcher:
     """Spawns and supervises the processes of one host of a :class:`~flocktrack.plan.RunPlan`."""
 
@@ -252,51 +266,26 @@ class Launcher:
                 out.setdefault(n.host, []).append(n.name)
         return out
 
-    def router_links(self) -> str:
-        """With a placement: which other hosts' routers this host's router has a link to (known by their fixed
-        ids, :func:`flocktrack.deploy.mesh.mesh_router_id`), e.g. ``router links: a down (dialling
-        tcp/10.0.0.1:7447), c up``; without one, or before the router is open, "". A host that waits for another
-        whose link is up waits for its processes; one whose link is down, for the network or its router."""
+    def _router_links(self) -> str:
         if not self.plan.multi_host or self.router is None:
             return ""
-        from flocktrack.deploy.mesh import mesh_router_id
+        from flocktrack.deploy.mesh import router_links
 
-        linked = {str(z) for z in self.router.info.routers_zid()}
-        hosts = list(self.plan.hosts)
-        me = next(i for i, h in enumerate(hosts) if h.name == self.host.name)
-        parts = []
-        for i, h in enumerate(hosts):
-            if i == me:
-                continue
-            up = mesh_router_id(h.name, h.address) in linked
-            how = "" if up else (f" (dialling {h.endpoint})" if i < me else f" ({h.name} dials this router)")
-            parts.append(f"{h.name} {'up' if up else 'down'}{how}")
-        return "router links: " + ", ".join(parts)
+        return router_links(self.plan, self.host.name, {str(z) for z in self.router.info.routers_zid()})
 
     def _startup_check(self) -> int | None:
         """Until the first tick: every few seconds, which hosts and nodes the run still waits for (and, with a
-        placement, this host's router links, :meth:`router_links`); after ``startup_timeout_s`` the run gives up
-        (exit 3)."""
+        placement, this host's router links); after ``startup_timeout_s`` the run gives up (exit 3)."""
         if self.ticking:
             return None
         now = time.monotonic()
-        links = ""
-        if now - self._told_at >= STARTUP_REPORT_S:
-            self._told_at = now
-            missing = self.waiting_for()
-            if missing:
-                links = self.router_links()
-                print(f"waiting {now - self._started_at:.0f} s for " + "; ".join(
-                    f"host {h}: {', '.join(ns[:5])}{' …' if len(ns) > 5 else ''}" for h, ns in missing.items())
-                      + (f"; {links}" if links else ""), file=sys.stderr, flush=True)
-        if now - self._started_at > self.opts.startup_timeout_s:
-            missing = self.waiting_for()
-            where = "; ".join(f"host {h}: {', '.join(ns)}" for h, ns in missing.items()) or "the first tick"
-            links = links or self.router_links()
-            print(f"error: the run did not start within {self.opts.startup_timeout_s:.0f} s; still waiting for "
-                  f"{where}" + (f"; {links}" if links else ""), file=sys.stderr, flush=True)
-            return 3
-        return None
+        late = now - self._started_at > self.opts.startup_timeout_s
+        if late or now - self._told_at >= STARTUP_REPORT_S:
+            self._told_at, missing = now, self.waiting_for()
+            if missing or late:
+                print(startup_line(now - self._started_at, missing, self._router_links(),
+                                   self.opts.startup_timeout_s if late else None), file=sys.stderr, flush=True)
+        return 3 if late else None
 
     def _register(self) -> None:
         """This run in the machine's list of runs (flocktrack/launch/runs.py: ``flocktrack ps``, ``fault``, ``logs``)."""

@@ -136,6 +136,18 @@ def test_a_placement_puts_each_node_once_and_gives_every_host_its_own_router_lau
     assert not any("/via/" in k for k in plan.observed())
 
 
+def test_a_waiting_host_names_its_router_links_by_the_ids_the_routers_are_given(tmp_path):
+    from flocktrack.deploy.mesh import host_router_config, router_links
+
+    (tmp_path / "hosts.toml").write_text(HOSTS.replace("[place]", '[hosts.c]\naddress = "10.0.0.3"\n[place]'))
+    plan = build_plan(load_scenario(SCEN / "gu_hu_normal.toml"), placement=load_placement(tmp_path / "hosts.toml"))
+    ids = {h: host_router_config(plan, h)["id"] for h in ("a", "b", "c")}   # what each router is told to be
+    assert router_links(plan, "b", {ids["a"]}) == "router links: a up, c down (c dials this router)"
+    assert router_links(plan, "c", {ids["b"], "an unrelated router"}) == \
+        "router links: a down (dialling tcp/10.0.0.1:7447), b up"
+    assert router_links(plan, "a", set(ids.values())) == "router links: b up, c up"
+
+
 @pytest.mark.parametrize("text, key, fix", [
     (HOSTS.replace('"agent/4-9" = "b"', '"agent/4-12" = "b"'), "place.'agent/4-12'", None),
     (HOSTS.replace('"agent/4-9" = "b"', '"agent/4-9" = "c"'), "place.'agent/4-9'", "use one of a, b"),
