@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from flocktrack.launch.forkserver import ForkedProcess, forkable
+from processes import descendants
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -50,24 +51,6 @@ def test_a_forked_child_reports_its_exit_code_output_and_signal(tmp_path):
     assert p.wait(10) == -9 and p.returncode == -9
 
 
-def _descendants(pid: int) -> set[int]:
-    """Every process below ``pid`` (by /proc's parent links)."""
-    parent = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, ValueError, IndexError):
-                pass
-    out, todo = set(), [pid]
-    while todo:
-        p = todo.pop()
-        kids = [c for c, pp in parent.items() if pp == p]
-        out.update(kids)
-        todo += kids
-    return out
-
-
 def _alive(pid: int) -> bool:
     try:
         return "zombie" not in (Path(f"/proc/{pid}/status").read_text().lower())
@@ -88,7 +71,7 @@ def test_kill_9_of_the_launcher_takes_the_template_and_every_forked_child_with_i
         while time.monotonic() < deadline and not (out / "recording.mcap").is_file():
             time.sleep(0.2)
         time.sleep(2.0)                       # the flock is up and ticking
-        below = _descendants(proc.pid)
+        below = descendants(proc.pid)
         assert len(below) >= 16, below        # the template and its 15 children (12 sensors, target, world, recorder)
     finally:
         proc.send_signal(signal.SIGKILL)

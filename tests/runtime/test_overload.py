@@ -25,30 +25,13 @@ from agent.bus import ZenohBus
 from agent.scenario import parse_scenario, scenario_data
 from flocktrack.engine.run import run_zenoh_to_dir
 from flocktrack.record.reader import read_recording
+from processes import descendants
 
 ROOT = Path(__file__).resolve().parents[2]
 BURN = "import time\nend = time.monotonic() + {s}\nwhile time.monotonic() < end:\n    pass\n"
 
 
-def process_tree(root: int) -> list[int]:
-    """``root`` and every process descended from it (from /proc)."""
-    kids: dict[int, list[int]] = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue            # gone meanwhile
-            kids.setdefault(ppid, []).append(int(d.name))
-    out, todo = [], [root]
-    while todo:
-        pid = todo.pop()
-        out.append(pid)
-        todo += kids.get(pid, [])
-    return out
-
-
-def confine(pids: list[int], cpus: set[int]) -> None:
+def confine(pids: set[int], cpus: set[int]) -> None:
     """Every thread of ``pids`` (Zenoh's runtime threads too) allowed on ``cpus`` only."""
     for pid in pids:
         try:
@@ -60,6 +43,11 @@ def confine(pids: list[int], cpus: set[int]) -> None:
                 os.sched_setaffinity(tid, cpus)
             except OSError:
                 pass                # a thread that ended meanwhile
+
+
+def run_processes() -> set[int]:
+    """This test's process (the launcher and its router) and every process below it."""
+    return {os.getpid(), *descendants(os.getpid())}
 
 
 class StarveAt:
@@ -84,7 +72,7 @@ class StarveAt:
         if self.started_at is None and self.seen >= self.k:
             self.started_at = self.seen
             one = {min(self.cores)}
-            confine(process_tree(os.getpid()), one)
+            confine(run_processes(), one)
             code = f"import os\nos.sched_setaffinity(0, {one!r})\n" + BURN.format(s=self.seconds)
             self.burners = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(2 * len(self.cores))]
             self.ends = time.monotonic() + self.seconds
@@ -93,7 +81,7 @@ class StarveAt:
 
     def release(self) -> None:
         if self.ends is not None:
-            confine(process_tree(os.getpid()), self.cores)
+            confine(run_processes(), self.cores)
             self.ends = None
 
     def close(self) -> None:
